@@ -1,0 +1,82 @@
+"""Array back ends for the evaluators: numpy (float64, host) and Dr.Jit.
+
+The op table's rules are written once against this small namespace
+(``sqrt``, ``select``, ``minimum``...), so the same rule evaluates numpy
+float64 arrays (oracles, the pruning-grid build) and Dr.Jit arrays of any
+backend (the ray kernel, LLVM or CUDA). ``eps`` is the relative outward
+padding that interval results get to cover rounding; ``const`` turns an
+expression constant into an array (opaque in Dr.Jit, so that another value
+does not recompile a kernel).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+class NumpyMath:
+    """float64 numpy arrays."""
+    eps = 2.0 ** -49          # ~32 ulp of float64
+    tiny = 1e-300
+    inf = math.inf
+    sqrt, exp, log, sin, cos = np.sqrt, np.exp, np.log, np.sin, np.cos
+    abs, floor, ceil, isnan = np.abs, np.floor, np.ceil, np.isnan
+    minimum, maximum, select = np.minimum, np.maximum, np.where
+
+    def const(self, c: float):
+        return np.float64(c)
+
+    def errstate(self):
+        return np.errstate(all="ignore")
+
+
+class DrJitMath:
+    """Dr.Jit arrays of floating-point type ``Float`` (32 or 64 bit)."""
+    inf = math.inf
+
+    def __init__(self, Float):
+        import drjit as dr
+        self.dr, self.Float = dr, Float
+        single = dr.type_v(Float) == dr.VarType.Float32
+        # drjit's sin/cos/exp/log are accurate to a few ulp: pad by 16 ulp.
+        self.eps = 2.0 ** -19 if single else 2.0 ** -48
+        self.tiny = 1e-37 if single else 1e-300
+        self._consts: dict[float, object] = {}
+        self.sqrt, self.exp, self.log = dr.sqrt, dr.exp, dr.log
+        self.sin, self.cos, self.abs = dr.sin, dr.cos, dr.abs
+        self.floor, self.ceil, self.isnan = dr.floor, dr.ceil, dr.isnan
+        self.minimum, self.maximum, self.select = dr.minimum, dr.maximum, dr.select
+
+    def const(self, c: float):
+        v = self._consts.get(c)
+        if v is None:
+            v = self._consts[c] = self.dr.opaque(self.Float, c)
+        return v
+
+    def errstate(self):
+        import contextlib
+        return contextlib.nullcontext()
+
+
+NUMPY = NumpyMath()
+
+
+def math_for(value):
+    """The back end for an array (numpy -> NUMPY, Dr.Jit -> DrJitMath)."""
+    import drjit as dr
+    if dr.is_array_v(value):
+        return DrJitMath(dr.float_array_t(dr.leaf_t(value)) if dr.depth_v(value) > 1 else type(value))
+    return NUMPY
+
+
+def powi(v, n: int):
+    """v ** n for an integer n >= 1 by binary exponentiation (any array type)."""
+    result, base = None, v
+    while n:
+        if n & 1:
+            result = base if result is None else result * base
+        n >>= 1
+        if n:
+            base = base * base
+    return result

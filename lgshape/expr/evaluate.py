@@ -1,0 +1,77 @@
+"""Evaluators: values and intervals of expressions over numpy or Dr.Jit arrays.
+
+Both walk the DAG once, children first, memoising every node, so a shared
+subexpression is computed once and several roots (f, g, dT H d...) share their
+work. Variables come from ``env`` (name -> array or Interval). In Dr.Jit the
+walk happens while tracing, so the result is one fused kernel.
+"""
+from __future__ import annotations
+
+from .. import interval as iv
+from ..arraymath import math_for
+from .node import Expr, topological
+from .ops import OPS
+
+
+def _lookup(env, name):
+    try:
+        return env[name]
+    except KeyError:
+        raise KeyError(f"no value given for variable {name!r}") from None
+
+
+def evaluate(roots, env: dict, m=None):
+    """Point values of ``roots`` (an Expr or a list of them)."""
+    single = isinstance(roots, Expr)
+    roots = [roots] if single else list(roots)
+    if m is None:
+        m = math_for(next(iter(env.values())))
+    memo = {}
+    with m.errstate():
+        for n in topological(roots):
+            if n.op == "const":
+                v = m.const(n.param)
+            elif n.op == "var":
+                v = _lookup(env, n.param)
+            else:
+                op = OPS[n.op]
+                args = [memo[id(a)] for a in n.args]
+                v = op.value(m, *args, n.param) if n.op == "pow" else op.value(m, *args)
+            memo[id(n)] = v
+    out = [memo[id(r)] for r in roots]
+    return out[0] if single else out
+
+
+def evaluate_interval(roots, env: dict, m):
+    """Interval bounds of ``roots`` over the intervals given in ``env``.
+
+    ``env`` values may be :class:`~lgshape.interval.Interval` or plain arrays
+    (exact points, such as the ray direction); a node whose arguments are all
+    plain stays plain, so constants and directions cost no interval work.
+    Returned values are Intervals (plain results are promoted)."""
+    single = isinstance(roots, Expr)
+    roots = [roots] if single else list(roots)
+    memo = {}
+    with m.errstate():
+        for n in topological(roots):
+            if n.op == "const":
+                memo[id(n)] = m.const(n.param)
+                continue
+            if n.op == "var":
+                memo[id(n)] = _lookup(env, n.param)
+                continue
+            op = OPS[n.op]
+            args = [memo[id(a)] for a in n.args]
+            extra = (n.param,) if n.op == "pow" else ()
+            if not any(isinstance(a, iv.Interval) for a in args):
+                memo[id(n)] = op.value(m, *args, *extra)
+                continue
+            if n.op == "mul" and not isinstance(args[0], iv.Interval):
+                r = iv.i_scale(m, args[0], args[1])
+            elif n.op == "mul" and not isinstance(args[1], iv.Interval):
+                r = iv.i_scale(m, args[1], args[0])
+            else:
+                r = op.interval(m, *[iv.promote(m, a) for a in args], *extra)
+            memo[id(n)] = iv.pad(m, r, op.transcendental)
+    out = [iv.promote(m, memo[id(r)]) for r in roots]
+    return out[0] if single else out
