@@ -20,9 +20,11 @@ class NumpyMath:
     eps = 2.0 ** -49          # ~32 ulp of float64
     tiny = 1e-300
     inf = math.inf
-    sqrt, exp, log, sin, cos = np.sqrt, np.exp, np.log, np.sin, np.cos
-    abs, floor, ceil, isnan = np.abs, np.floor, np.ceil, np.isnan
-    minimum, maximum, select = np.minimum, np.maximum, np.where
+    sqrt, exp, log = staticmethod(np.sqrt), staticmethod(np.exp), staticmethod(np.log)
+    sin, cos, abs = staticmethod(np.sin), staticmethod(np.cos), staticmethod(np.abs)
+    floor, ceil, isnan = staticmethod(np.floor), staticmethod(np.ceil), staticmethod(np.isnan)
+    minimum, maximum = staticmethod(np.minimum), staticmethod(np.maximum)
+    select = staticmethod(np.where)
 
     def const(self, c: float):
         return np.float64(c)

@@ -133,14 +133,19 @@ def spikes(core: float = 0.5, height: float = 1.0, width: float = 0.01,
     """A ball of radius ``core`` with 14 needle-thin spikes (seven lines through
     the centre), after the seed's stability example:
     x^2 + y^2 + z^2 - core^2 - height * sum_k exp(-rho_k^2 / width^2), where rho_k
-    is the distance to the k-th axis line. A spike reaches |p| =
+    is the distance to the k-th axis line (|p x a_k|). A spike reaches |p| =
     sqrt(core^2 + height) and is at most ~2 width thick, thinner than a grid
     cell or a marcher's step."""
     r2 = x**2 + y**2 + z**2
     total = None
     for a in axes:
-        along = a[0] * x + a[1] * y + a[2] * z
-        term = exp((along**2 - r2) * (1.0 / width**2))
+        # |p x a|^2 as a sum of squares: tight intervals, no cancellation.
+        c = (a[1] * z - a[2] * y, a[2] * x - a[0] * z, a[0] * y - a[1] * x)
+        rho2 = None
+        for ci in c:
+            if not ci.is_const:
+                rho2 = ci**2 if rho2 is None else rho2 + ci**2
+        term = exp(rho2 * (-1.0 / width**2))
         total = term if total is None else total + term
     h = 1.05 * math.sqrt(core**2 + height)
     return Implicit("spikes", r2 - core**2 - height * total, _cube(h))

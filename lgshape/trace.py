@@ -1,0 +1,386 @@
+"""The guaranteed ray search (Kalra & Barr 1989) over the pruning grid.
+
+For each ray, F(t) = f(o + t d), g = dF/dt, h = d^2F/dt^2 (exact symbolic
+derivatives). The ray is clipped to the bounding box; a DDA visits the
+occupied cells of the pruning grid nearest first (:mod:`lgshape.grid`); in
+each cell the segment [a, b] is searched by stackless bisection. On an
+interval with midpoint t_m and half width r, with G >= |h| on it (a local
+interval bound, or a global constant as in the seed):
+
+- *exclusion*: F(t_m) +- (|g(t_m)| r + G r^2 / 2) has one sign -> no root;
+- *monotonicity* (the seed's test): |g(t_m)| > G r -> F has at most one
+  root; the signs of F at the ends (bounded by the same Taylor form) decide
+  whether it has one, and in which half;
+- otherwise split.
+
+A bracketed single root is refined by safeguarded Newton (bisection where a
+step leaves the bracket) to a tolerance in t. Intervals are visited left to
+right, so the first root found is the nearest. Below a minimum width an
+interval that cannot be excluded is reported as a hit at its midpoint (a
+tangent touch or a singular point; counted as ``unresolved``). A ray that
+reaches the iteration bound is counted in ``capped`` and reported as a miss
+of the search, never silently.
+
+Everything is Dr.Jit code without host round trips: it runs in LLVM and CUDA
+and inside Mitsuba integrators. Constants are opaque, so another Surface of
+the same expression shape reuses the compiled kernels.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import bounds, grid as gridmod
+from .arraymath import DrJitMath
+from .expr import Expr, evaluate, gradient, parse, ray_derivatives
+from .interval import magnitude
+from .surfaces import Implicit
+
+MAX_LEVEL = 22          # bisection depth bound inside one cell segment
+
+#: How an interval of the ray is bounded: ``"interval"`` (g = dF/dt over the
+#: interval by interval arithmetic, the mean-value form), ``"taylor"`` (the
+#: seed's test with a local G >= |d^T H d| per interval) and ``"global"`` (the
+#: seed's test with one G: hand-given, or the Hessian norm over the box).
+SEARCH_MODES = ("interval", "taylor", "global")
+
+
+@dataclass
+class RayResult:
+    """Per-ray output of :meth:`Surface.trace` (Dr.Jit arrays)."""
+    t: object            # Float: nearest root, inf where none
+    hit: object          # Bool
+    evals: object        # UInt32: point + interval evaluations
+    iterations: object   # UInt32: search + refinement iterations
+    capped: object       # Bool: reached the iteration bound
+    unresolved: object   # Bool: hit decided at the minimum width (tangent/singular)
+
+
+def _as_expr(expr):
+    if isinstance(expr, Implicit):
+        return expr.expr, expr.bbox
+    if isinstance(expr, str):
+        return parse(expr), None
+    if isinstance(expr, Expr):
+        return expr, None
+    raise TypeError(f"expected an expression, a string or a library surface, "
+                    f"not {type(expr).__name__}")
+
+
+class Surface:
+    """An implicit surface f = 0 inside a box, ready for guaranteed ray queries.
+
+    ``expr``: an expression, a string of the expression language or a library
+    surface (:mod:`lgshape.surfaces`, which brings its own box). ``bbox``:
+    ``((x0, y0, z0), (x1, y1, z1))``. ``L``: a hand-given Lipschitz constant of
+    f over the box (then the pruning uses the seed's global test). ``G``: a
+    hand-given bound of |d^2 F/dt^2| for unit directions (then the search uses
+    it instead of local interval bounds). ``depth``: the pruning depth (2**depth
+    cells per axis). ``search``: how ray intervals are bounded, see
+    :data:`SEARCH_MODES` (default ``"interval"``, or ``"global"`` when ``G`` is
+    given). ``max_iterations``: the per-ray bound on search steps.
+    """
+
+    def __init__(self, expr, bbox=None, *, L: float | None = None, G: float | None = None,
+                 depth: int | None = None, search: str | None = None,
+                 max_iterations: int = 4096):
+        f, default_box = _as_expr(expr)
+        bbox = bbox if bbox is not None else default_box
+        if bbox is None:
+            raise ValueError("Surface needs a bbox ((x0, y0, z0), (x1, y1, z1)) for a plain expression")
+        lo, hi = (np.asarray(v, dtype=np.float64).reshape(3) for v in bbox)
+        if not np.all(hi > lo):
+            raise ValueError(f"bbox must have min < max on every axis, got {bbox}")
+        for name, v in (("L", L), ("G", G)):
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive finite number, got {v}")
+        self.expr, self.lo, self.hi = f, lo, hi
+        self.g_expr, self.h_expr = ray_derivatives(f)
+        self.L, self.G_hand = L, G
+        self.depth = 6 if depth is None else int(depth)
+        if search is None:
+            search = "global" if G is not None else "interval"
+        if search not in SEARCH_MODES:
+            raise ValueError(f"unknown search mode {search!r} (one of {', '.join(SEARCH_MODES)})")
+        self.search = search
+        self.max_iterations = int(max_iterations)
+        self.grid = gridmod.build(f, lo, hi, self.depth,
+                                  mode="global" if L is not None else "local", L=L)
+        self._device = {}
+
+    # -- host-side facts ------------------------------------------------------
+    @property
+    def bbox(self):
+        return tuple(map(float, self.lo)), tuple(map(float, self.hi))
+
+    @property
+    def diagonal(self) -> float:
+        return float(np.linalg.norm(self.hi - self.lo))
+
+    @property
+    def memory_bytes(self) -> int:
+        """Size of the pruning structure (brick map)."""
+        return self.grid.nbytes
+
+    def global_G(self) -> float:
+        """G for unit directions: the hand-given one, else the Hessian norm over the box."""
+        if self.G_hand is not None:
+            return self.G_hand
+        return float(bounds.hessian_norm(self.expr, self.lo[None], self.hi[None])[0])
+
+    def __repr__(self):
+        return (f"Surface({self.expr!r}, bbox={self.bbox}, depth={self.depth}, "
+                f"cells={len(self.grid.cells)})")
+
+    # -- Dr.Jit side ------------------------------------------------------------
+    def _kernel_data(self, Float):
+        key = Float
+        if key not in self._device:
+            import drjit as dr
+            m = DrJitMath(Float)
+            dev = gridmod.DeviceGrid(self.grid, Float)
+            box = ([dr.opaque(Float, float(v)) for v in self.lo],
+                   [dr.opaque(Float, float(v)) for v in self.hi])
+            self._device[key] = (m, dev, None, box, dr.opaque(Float, self.diagonal))
+        return self._device[key]
+
+    @staticmethod
+    def _arrays(o, d):
+        import drjit as dr
+        if not dr.is_array_v(o):
+            from drjit.llvm.ad import Array3f
+            o, d = (np.ascontiguousarray(np.asarray(v, dtype=np.float32).reshape(-1, 3)) for v in (o, d))
+            return Array3f(o.T), Array3f(d.T)
+        return o, d
+
+    def gradient(self, p):
+        """grad f at points p (Array3f or (N, 3) numpy)."""
+        import drjit as dr
+        p, _ = self._arrays(p, p)
+        Float = type(p.x)
+        m = self._kernel_data(Float)[0]
+        gx, gy, gz = evaluate(list(gradient(self.expr)), {"x": p.x, "y": p.y, "z": p.z}, m)
+        return type(p)(gx, gy, gz)
+
+    def normal(self, p):
+        """The unit normal grad f / |grad f| (towards f > 0)."""
+        import drjit as dr
+        g = self.gradient(p)
+        n2 = dr.squared_norm(g)
+        return dr.select(n2 > 0, g * dr.rsqrt(n2), type(g)(0, 0, 1))
+
+    def value(self, p):
+        """f at points p."""
+        p, _ = self._arrays(p, p)
+        return evaluate(self.expr, {"x": p.x, "y": p.y, "z": p.z}, self._kernel_data(type(p.x))[0])
+
+    def intersect(self, o, d, t_min=0.0, t_max=math.inf, active=True):
+        """Nearest root t in [t_min, t_max] along o + t d: returns (t, hit),
+        t = inf where there is none."""
+        r = self.trace(o, d, t_min, t_max, active)
+        return r.t, r.hit
+
+    def occluded(self, o, d, t_max, active=True, t_min=0.0):
+        """Any root in [t_min, t_max]? Stops at the first proven root."""
+        return self.trace(o, d, t_min, t_max, active, any_hit=True).hit
+
+    def trace(self, o, d, t_min=0.0, t_max=math.inf, active=True, any_hit=False) -> RayResult:
+        """The search with its per-ray statistics (see :class:`RayResult`)."""
+        import drjit as dr
+        o, d = self._arrays(o, d)
+        Float = type(o.x)
+        UInt32 = dr.uint32_array_t(Float)
+        Int32 = dr.int32_array_t(Float)
+        Bool = dr.mask_t(Float)
+        m, dev, G_hand, (blo, bhi), diag = self._kernel_data(Float)
+        n = max(dr.width(o), dr.width(d))
+        f, ge, he = self.expr, self.g_expr, self.h_expr
+        mode = self.search
+        if mode == "global":
+            G_glob = dr.opaque(Float, self.global_G()) * dr.squared_norm(d)
+
+        # ---- Clip to the bounding box ----
+        t0, t1 = Float(-math.inf), Float(math.inf)
+        for a in range(3):
+            inv = 1.0 / d[a]
+            ta, tb = (blo[a] - o[a]) * inv, (bhi[a] - o[a]) * inv
+            flat = d[a] == 0
+            inside = (o[a] >= blo[a]) & (o[a] <= bhi[a])
+            t0 = dr.select(flat, dr.select(inside, t0, math.inf), dr.maximum(t0, dr.minimum(ta, tb)))
+            t1 = dr.select(flat, dr.select(inside, t1, -math.inf), dr.minimum(t1, dr.maximum(ta, tb)))
+        t_start = dr.maximum(t0, Float(t_min))
+        t_end = dr.minimum(t1, Float(t_max))
+        active = (Bool(active) | dr.zeros(Bool, n)) & (t_start <= t_end) & dr.isfinite(t_start)
+
+        dlen = dr.norm(d)
+        cell = dr.minimum(dr.minimum(dev.cell[0], dev.cell[1]), dev.cell[2])
+        margin = 1e-3 * cell / dlen          # neighbouring segments overlap by this much
+        r_min = 1e-6 * diag / dlen           # minimum half width of a search interval
+        tol = 1e-7 * diag / dlen             # refinement tolerance in t
+        ray = {"dx": d.x, "dy": d.y, "dz": d.z}
+
+        def point(t):
+            return {"x": o.x + t * d.x, "y": o.y + t * d.y, "z": o.z + t * d.z}
+
+        def sgn(v):
+            return dr.select(v > 0, 1, dr.select(v < 0, -1, 0))
+
+        def sign_of(lo, hi):
+            """+1 / -1 where [lo, hi] has one strict sign, else 0."""
+            return dr.select(lo > 0, 1, dr.select(hi < 0, -1, 0))
+
+        def interval_of(level, idx, a, b):
+            w = (b - a) / Float(UInt32(1) << UInt32(level))
+            lo = a + Float(idx) * w
+            last = idx + 1 == (Int32(1) << level)
+            return lo, dr.select(last, b, lo + w)
+
+        def advance(level, idx):
+            """The next interval to the right in the implicit binary tree."""
+            nxt = idx + 1
+            tz = dr.minimum(Int32(dr.tzcnt(UInt32(nxt))), level)
+            level, idx = level - tz, nxt >> tz
+            return level, idx, (level == 0) & (idx == 1)
+
+        # ---- Search [a, b] from interval (level, idx): stackless bisection ----
+        NONE, BRACKET, TINY = 0, 1, 2
+
+        def search(a, b, level, idx, active, evals, iters):
+            def body(level, idx, active, status, t_lo, t_hi, s_lo, evals, iters):
+                lo, hi = interval_of(level, idx, a, b)
+                tm, r = 0.5 * (lo + hi), 0.5 * (hi - lo)
+                if mode == "interval":
+                    # Mean-value form: g over [lo, hi] by interval arithmetic.
+                    F = evaluate(f, point(tm), m)
+                    gi = bounds.segment_interval(ge, o, d, lo, hi, m)
+                    g_lo, g_hi = gi.lo, gi.hi
+                    F_lo = F + dr.minimum(r * g_lo, -r * g_hi)
+                    F_hi = F + dr.maximum(r * g_hi, -r * g_lo)
+                    Fa = (F - r * g_hi, F - r * g_lo)
+                    Fb = (F + r * g_lo, F + r * g_hi)
+                    evals = evals + (dr.select(active, 2, 0))
+                else:
+                    # Second-order Taylor form with G >= |h| (local or global).
+                    F, g = evaluate([f, ge], {**point(tm), **ray}, m)
+                    if mode == "taylor":
+                        hi_ = bounds.segment_interval(he, o, d, lo, hi, m)
+                        h_lo, h_hi = hi_.lo, hi_.hi
+                        evals = evals + (dr.select(active, 2, 0))
+                    else:
+                        h_lo, h_hi = -G_glob, G_glob
+                        evals = evals + (dr.select(active, 1, 0))
+                    G = dr.maximum(dr.abs(h_lo), dr.abs(h_hi))
+                    q, ag, gr = 0.5 * r * r, dr.abs(g) * r, g * r
+                    g_lo, g_hi = g - G * r, g + G * r       # the seed's |g(t_m)| > G r
+                    F_lo = F - ag + dr.minimum(h_lo, 0) * q
+                    F_hi = F + ag + dr.maximum(h_hi, 0) * q
+                    Fa = (F - gr + h_lo * q, F - gr + h_hi * q)
+                    Fb = (F + gr + h_lo * q, F + gr + h_hi * q)
+                excluded = ((F_lo > 0) | (F_hi < 0)) & dr.isfinite(F)
+                monotone = (g_lo > 0) | (g_hi < 0)
+                s_a, s_b, s_m = sign_of(*Fa), sign_of(*Fb), sgn(F)
+                left = monotone & (s_m != 0) & (s_a == -s_m)
+                right = monotone & ~left & (s_m != 0) & (s_b == -s_m)
+                exact = monotone & (F == 0)
+                empty = excluded | (monotone & (s_m != 0) & (s_a == s_m) & (s_b == s_m))
+                bracket = active & ~empty & (left | right | exact)
+                tiny = active & ~empty & ~bracket & ((r < r_min) | (level >= MAX_LEVEL))
+                split = active & ~empty & ~bracket & ~tiny
+
+                status = dr.select(bracket, BRACKET, dr.select(tiny, TINY, status))
+                t_lo = dr.select(bracket, dr.select(left, lo, tm), dr.select(tiny, lo, t_lo))
+                t_hi = dr.select(bracket, dr.select(left, tm, dr.select(exact, tm, hi)),
+                                 dr.select(tiny, hi, t_hi))
+                s_lo = dr.select(bracket, dr.select(left, s_a, s_m), s_lo)
+
+                level_n, idx_n, done = advance(level, idx)
+                advancing = active & empty
+                level = dr.select(split, level + 1, dr.select(advancing, level_n, level))
+                idx = dr.select(split, idx << 1, dr.select(advancing, idx_n, idx))
+                iters = iters + (dr.select(active, 1, 0))
+                active = (split | (advancing & ~done)) & (iters < self.max_iterations)
+                return (level, idx, active, status, t_lo, t_hi, s_lo, evals, iters)
+
+            state = (level, idx, Bool(active), dr.zeros(Int32, n), dr.zeros(Float, n),
+                     dr.zeros(Float, n), dr.zeros(Int32, n), evals, iters)
+            out = dr.while_loop(state=state, cond=lambda level, idx, active, *_: active,
+                                body=body, label="lgshape_search")
+            return out   # level, idx, active, status, t_lo, t_hi, s_lo, evals, iters
+
+        # ---- Refine a bracket with one sign change: safeguarded Newton ----
+        def refine(active, t_lo, t_hi, s_lo, evals, iters):
+            def body(active, t_lo, t_hi, t, F, g, evals, iters):
+                tn = t - F / g
+                tn = dr.select((tn > t_lo) & (tn < t_hi), tn, 0.5 * (t_lo + t_hi))
+                Fn, gn = evaluate([f, ge], {**point(tn), **ray}, m)
+                same = sgn(Fn) == s_lo
+                t_lo = dr.select(active & same, tn, t_lo)
+                t_hi = dr.select(active & ~same, tn, t_hi)
+                conv = (dr.abs(tn - t) < tol) | (t_hi - t_lo < tol) | (Fn == 0)
+                t, F, g = (dr.select(active, new, old) for new, old in ((tn, t), (Fn, F), (gn, g)))
+                evals = evals + (dr.select(active, 1, 0))
+                iters = iters + (dr.select(active, 1, 0))
+                active = active & (~conv & (iters < self.max_iterations))
+                return (active, t_lo, t_hi, t, F, g, evals, iters)
+
+            nan = dr.full(Float, math.nan, n)
+            state = (Bool(active), t_lo, t_hi, nan, nan, nan, evals, iters)
+            out = dr.while_loop(state=state, cond=lambda active, *_: active, body=body,
+                                label="lgshape_refine")
+            return out[3], out[6], out[7]
+
+        # ---- Outer loop: occupied cells nearest first ----
+        def body(active, resume, a, b, level, idx, t_hit, hit, unres, evals, iters, t_cur, *dstate):
+            # Lanes not resuming a segment move on to the next occupied cell.
+            q = gridmod.DDA.from_state(dstate)
+            found, ta, tb, q, t_cur = gridmod.dda_next_occupied(dev, q, t_cur, t_end, active & ~resume)
+            fresh = active & ~resume
+            a = dr.select(fresh, dr.maximum(ta - margin, t_start), a)
+            b = dr.select(fresh, dr.minimum(tb + margin, t_end), b)
+            level = dr.select(fresh, 0, level)
+            idx = dr.select(fresh, 0, idx)
+            active = active & ((found | resume) & (a <= b))
+
+            level, idx, _, status, t_lo, t_hi, s_lo, evals, iters = search(
+                a, b, level, idx, active, evals, iters)
+            status = dr.select(active, status, NONE)
+
+            # A tiny interval (tangent, singular point, crease): a root only
+            # where F changes sign across it; otherwise resume after it.
+            tiny = status == TINY
+            F1 = evaluate(f, point(t_lo), m)
+            F2 = evaluate(f, point(t_hi), m)
+            evals = evals + (dr.select(tiny, 2, 0))
+            s1, s2 = sgn(F1), sgn(F2)
+            tiny_root = tiny & (s1 != s2)
+            bracket = (status == BRACKET) | tiny_root
+            s_lo = dr.select(tiny, s1, s_lo)
+            t_lo = dr.select(tiny & (s1 == 0), t_lo, dr.select(tiny & (s2 == 0), t_hi, t_lo))
+            t_hi = dr.select(tiny & (s1 == 0), t_lo, t_hi)
+            if any_hit:
+                t_root = 0.5 * (t_lo + t_hi)
+            else:
+                t_root, evals, iters = refine(bracket, t_lo, t_hi, s_lo, evals, iters)
+            hit = hit | bracket
+            unres = unres | tiny_root
+            t_hit = dr.select(bracket, t_root, t_hit)
+            level_n, idx_n, done = advance(level, idx)
+            resume = tiny & ~tiny_root & ~done
+            level = dr.select(resume, level_n, level)
+            idx = dr.select(resume, idx_n, idx)
+            active = active & (~bracket & (iters < self.max_iterations))
+            return (active, resume, a, b, level, idx, t_hit, hit, unres, evals, iters, t_cur, *q.state())
+
+        dda = gridmod.DDA(dev, o, d, t_start)
+        def z(T):
+            return dr.zeros(T, n)
+        state = (active, z(Bool), z(Float), z(Float), z(Int32), z(Int32), dr.full(Float, math.inf, n),
+                 z(Bool), z(Bool), z(UInt32), z(UInt32), Float(t_start), *dda.state())
+        out = dr.while_loop(state=state, cond=lambda active, *_: active, body=body,
+                            label="lgshape_cells")
+        t_hit, hit, unres, evals, iters = out[6:11]
+        capped = iters >= self.max_iterations
+        hit = hit & ~capped
+        return RayResult(dr.select(hit, t_hit, math.inf), hit, evals, iters, capped, unres)
