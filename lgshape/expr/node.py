@@ -79,6 +79,9 @@ class Expr:
     def __pos__(self):
         return self
 
+    def __abs__(self):
+        return abs_(self)
+
     def __pow__(self, n):
         return power(self, n)
 

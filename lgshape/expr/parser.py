@@ -109,7 +109,8 @@ class _Parser:
     def power(self):
         base = self.atom()
         if self.peek()[0] == "op" and self.peek()[1] in ("^", "**"):
-            pos = self.take()[2] + 1
+            self.take()
+            pos = self.peek()[2]
             exponent = self.unary()
             try:
                 return N.power(base, exponent)

@@ -1,0 +1,54 @@
+"""Mitsuba plugins of lgshape: the ``lgsurface`` shape and the ``lg_path``,
+``lg_direct`` and ``lg_aov`` integrators that render it next to native
+geometry. One file per plugin id; shared integrator code is in :mod:`.common`.
+
+The last stage of the pipeline (expression -> bounds -> grid -> trace ->
+plugins): only this package and the command line import Mitsuba.
+"""
+from __future__ import annotations
+
+import importlib
+
+#: plugin id -> (kind, class name); the module is ``lgshape.plugins.<id>``.
+PLUGINS = {
+    "lgsurface": ("shape", "LGSurface"),
+    "lg_path": ("integrator", "LGPathIntegrator"),
+    "lg_direct": ("integrator", "LGDirectIntegrator"),
+    "lg_aov": ("integrator", "LGAOVIntegrator"),
+}
+
+_registered: set[str] = set()
+
+
+def register_plugins() -> None:
+    """Register all plugins for the current Mitsuba variant (a JIT variant:
+    ``llvm_ad_rgb``, ``llvm_ad_mono``, ``llvm_ad_spectral`` or their
+    ``cuda_`` siblings). Calling it again is a no-op."""
+    import mitsuba as mi
+
+    variant = mi.variant()
+    if variant is None:
+        raise RuntimeError("lgshape.register_plugins(): no Mitsuba variant is set; call "
+                           "mi.set_variant('llvm_ad_rgb') (or another JIT variant) first")
+    if variant.startswith("scalar"):
+        raise RuntimeError(f"lgshape.register_plugins(): the variant '{variant}' is a scalar "
+                           "variant; lgshape traces rays with Dr.Jit and needs a JIT variant "
+                           "such as 'llvm_ad_rgb' or 'cuda_ad_rgb'")
+    if "polarized" in variant:
+        raise RuntimeError(f"lgshape.register_plugins(): polarized variants ('{variant}') are "
+                           "not supported; use e.g. 'llvm_ad_rgb' or 'llvm_ad_spectral'")
+    if variant in _registered:
+        return
+    for plugin_id, (kind, class_name) in PLUGINS.items():
+        module = importlib.import_module(f".{plugin_id}", __name__)
+        # Classes derive from the variant's base classes: rebuild them for a
+        # new variant (as Mitsuba does for its own Python integrators).
+        if getattr(module, "_variant", variant) != variant:
+            module = importlib.reload(module)
+        module._variant = variant
+        cls = getattr(module, class_name)
+        getattr(mi, f"register_{kind}")(plugin_id, lambda props, cls=cls: cls(props))
+    _registered.add(variant)
+
+
+__all__ = ["PLUGINS", "register_plugins"]

@@ -1,0 +1,57 @@
+"""Shared cases for the numbered tests: one expression per op of the op
+table (so a new op row is picked up) and the surface library."""
+import lgshape  # noqa: F401  (sets up libLLVM before drjit is imported)
+import numpy as np
+import pytest
+
+from lgshape.expr import node as N
+from lgshape.expr.ops import OPS
+from lgshape.surfaces import LIBRARY
+
+x, y, z = N.var("x"), N.var("y"), N.var("z")
+u = x * y - z + 0.3          # a non-trivial argument, so composition is exercised
+
+
+def op_case(name):
+    """An expression that applies op `name` (one per row of the op table)."""
+    arity = OPS[name].arity
+    if name == "pow":
+        return (x - 0.5 * y) ** 3 + (u ** 4) * z ** 2
+    if name in ("sqrt", "log"):
+        return getattr(N, name)(x * x + y * y + 0.2 * z * z + 0.05)
+    if name == "div":
+        return (x + y) / (z * z + 0.5) + u / (x * x + 1)
+    builders = {"add": N.add, "sub": N.sub, "mul": N.mul, "neg": N.neg, "exp": N.exp,
+                "sin": N.sin, "cos": N.cos, "abs": N.abs_, "min": N.minimum, "max": N.maximum,
+                "step": N.step, "kink": N.kink}
+    make = builders[name]
+    return make(u, N.sin(y) * z + x) if arity == 2 else make(u * 1.5)
+
+
+OP_NAMES = sorted(OPS)
+SURFACE_NAMES = sorted(LIBRARY)
+ALL_CASES = [("op", n) for n in OP_NAMES] + [("surface", n) for n in SURFACE_NAMES]
+
+
+def case_expr(kind, name):
+    if kind == "op":
+        return op_case(name), ((-1.5, -1.5, -1.5), (1.5, 1.5, 1.5))
+    s = LIBRARY[name]()
+    return s.expr, s.bbox
+
+
+def case_id(case):
+    return f"{case[0]}-{case[1]}"
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)
+
+
+def random_boxes(rng, bbox, n, max_frac=0.3):
+    """n random sub-boxes of bbox with edges up to max_frac of its size."""
+    lo, hi = np.asarray(bbox[0]), np.asarray(bbox[1])
+    size = (hi - lo) * rng.uniform(1e-3, max_frac, (n, 3)) * rng.uniform(0, 1, (n, 1)) ** 2
+    blo = lo + (hi - lo - size) * rng.uniform(0, 1, (n, 3))
+    return blo, blo + size

@@ -1,0 +1,86 @@
+"""The expression language: parser, Python operators, printer, errors.
+
+Oracle: the same function written three ways (a string, Python operators,
+plain numpy code) gives the same float64 values at random points."""
+import numpy as np
+import pytest
+
+import lgshape
+from lgshape import ParseError, parse, x, y, z
+from lgshape.expr import evaluate
+from lgshape.expr.printer import to_string
+from lgshape.surfaces import LIBRARY
+
+PAIRS = [
+    ("x^4 - 5*x^2 + y^4 - 5*y^2 + z^4 - 5*z^2 + 11.8",
+     x**4 - 5 * x**2 + y**4 - 5 * y**2 + z**4 - 5 * z**2 + 11.8,
+     lambda X, Y, Z: X**4 - 5 * X**2 + Y**4 - 5 * Y**2 + Z**4 - 5 * Z**2 + 11.8),
+    ("-x^2 + 2**3*y - z/(1+x*x)", -x**2 + 2**3 * y - z / (1 + x * x),
+     lambda X, Y, Z: -X**2 + 8 * Y - Z / (1 + X * X)),
+    ("sqrt(x*x + y*y + 1) - exp(-z) + log(2 + sin(x)) * cos(y)",
+     lgshape.sqrt(x * x + y * y + 1) - lgshape.exp(-z) + lgshape.log(2 + lgshape.sin(x)) * lgshape.cos(y),
+     lambda X, Y, Z: np.sqrt(X * X + Y * Y + 1) - np.exp(-Z) + np.log(2 + np.sin(X)) * np.cos(Y)),
+    ("abs(x) + min(x, y, z) - max(y, 2*z) + x^-2 + pi*e",
+     abs(x) + lgshape.minimum(x, y, z) - lgshape.maximum(y, 2 * z) + x**-2 + np.pi * np.e,
+     lambda X, Y, Z: np.abs(X) + np.minimum(np.minimum(X, Y), Z) - np.maximum(Y, 2 * Z) + X**-2.0 + np.pi * np.e),
+    ("2^2^3 + .5e1*x - 1.5E-1", 2**(2**3) + 5 * x - 0.15, lambda X, Y, Z: 256 + 5 * X - 0.15),
+]
+
+
+@pytest.mark.parametrize("text,built,reference", PAIRS)
+def test01_parse_matches_operators_and_numpy(text, built, reference, rng):
+    P = rng.uniform(-2, 2, (3, 500))
+    env = dict(zip("xyz", P))
+    parsed = parse(text)
+    assert parsed is built                                   # interned: the same DAG
+    np.testing.assert_allclose(evaluate(parsed, env), reference(*P), rtol=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(LIBRARY))
+def test02_printer_round_trips(name, rng):
+    e = LIBRARY[name]().expr
+    back = parse(to_string(e))
+    P = dict(zip("xyz", rng.uniform(-1, 1, (3, 200))))
+    np.testing.assert_allclose(evaluate(back, P), evaluate(e, P), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("text,pos,fragment", [
+    ("x +", 4, "expected a number"),
+    ("2*(x - y", 9, "expected ')'"),
+    ("x y", 3, "expected an operator"),
+    ("sin(x, y)", 1, "sin() takes 1 argument"),
+    ("x ^ 0.5", 5, "only integer powers"),
+    ("x ^ y", 5, "constant integer"),
+    ("x $ 1", 3, "unexpected character '$'"),
+    ("", 1, "expected an expression"),
+    ("max(x)", 1, "at least 2 arguments"),
+])
+def test03_errors_name_the_position(text, pos, fragment):
+    with pytest.raises(ParseError) as err:
+        parse(text)
+    assert err.value.pos + 1 == pos
+    assert f"at position {pos}" in str(err.value)
+    assert fragment in str(err.value)
+
+
+def test04_unknown_identifier_is_named():
+    with pytest.raises(ParseError, match=r"unknown identifier 'w'.*position 7"):
+        parse("x + 2*w")
+    with pytest.raises(ParseError, match="unknown identifier 'step'"):
+        parse("step(x)")   # internal op, not part of the language
+
+
+def test05_shared_subexpressions():
+    a = (x * y + 1) ** 2
+    e = a + lgshape.sin(a) + a * z
+    # x, y, 1, x*y, x*y+1, a, sin(a), z, a*z and two additions.
+    assert e.size() == 11
+
+
+def test06_bad_python_values():
+    with pytest.raises(ValueError, match="integer powers"):
+        x ** 1.5
+    with pytest.raises(TypeError):
+        x + "1"
+    with pytest.raises(ValueError, match="not finite"):
+        x + float("inf")
