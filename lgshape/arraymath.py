@@ -4,7 +4,8 @@ The op table's rules are written once against this small namespace
 (``sqrt``, ``select``, ``minimum``...), so the same rule evaluates numpy
 float64 arrays (oracles, the pruning-grid build) and Dr.Jit arrays of any
 backend (the ray kernel, LLVM or CUDA). ``eps`` is the relative outward
-padding that interval results get to cover rounding; ``const`` turns an
+padding that interval results get to cover rounding; ``eps_t`` is the same for
+the transcendental ops. ``const`` turns an
 expression constant into an array (opaque in Dr.Jit, so that another value
 does not recompile a kernel).
 """
@@ -17,7 +18,8 @@ import numpy as np
 
 class NumpyMath:
     """float64 numpy arrays."""
-    eps = 2.0 ** -49          # ~32 ulp of float64
+    eps = 2.0 ** -51          # 2 ulp of float64: correctly rounded + - * / sqrt
+    eps_t = 2.0 ** -46        # 64 ulp: libm's sin, cos, exp, log
     tiny = 1e-300
     inf = math.inf
     sqrt, exp, log = staticmethod(np.sqrt), staticmethod(np.exp), staticmethod(np.log)
@@ -41,8 +43,10 @@ class DrJitMath:
         import drjit as dr
         self.dr, self.Float = dr, Float
         single = dr.type_v(Float) == dr.VarType.Float32
-        # drjit's sin/cos/exp/log are accurate to a few ulp: pad by 16 ulp.
-        self.eps = 2.0 ** -19 if single else 2.0 ** -48
+        # + - * / sqrt are correctly rounded (pad by 2 ulp); Dr.Jit's sin,
+        # cos, exp and log are accurate to a few ulp (pad by 16 / 64 ulp).
+        self.eps = 2.0 ** -22 if single else 2.0 ** -51
+        self.eps_t = 2.0 ** -19 if single else 2.0 ** -46
         self.tiny = 1e-37 if single else 1e-300
         self._consts: dict[float, object] = {}
         self.sqrt, self.exp, self.log = dr.sqrt, dr.exp, dr.log

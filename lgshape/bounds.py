@@ -47,8 +47,9 @@ def segment_G(h, o, d, a, b, m):
 
 
 def segment_interval(e, o, d, a, b, m) -> Interval:
-    """Interval of expression e (in x, y, z, dx, dy, dz) over the ray segment
-    o + [a, b] d."""
+    """Interval of expression e (in x, y, z, dx, dy, dz; or a list of them)
+    over the ray segment o + [a, b] d. With a = b it encloses the exact value
+    at that point of the ray, rounding included."""
     from .interval import pad
     env = {}
     for i, v in enumerate("xyz"):

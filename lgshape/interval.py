@@ -2,8 +2,9 @@
 
 Contract: for every op, the result ``[lo, hi]`` contains every value the
 op takes over its input intervals (in exact arithmetic), and after each op the
-bounds are padded outward by ``eps * |bound| + tiny`` (plus ``eps`` for the
-transcendental ops, whose absolute error does not scale with the result),
+bounds are padded outward by ``eps * |bound| + tiny`` (for the transcendental
+ops, ``eps_t * (|bound| + 1)``, as their absolute error does not scale with
+the result; see :mod:`lgshape.arraymath` for the values),
 which covers the rounding of float32 and float64 operations; the rounding mode
 itself is not directed. Division by an interval that contains 0, and sqrt or
 log of an interval reaching below 0, give infinite bounds. A NaN bound (from
@@ -36,11 +37,11 @@ def magnitude(m, a: Interval):
     return m.maximum(m.abs(a.lo), m.abs(a.hi))
 
 
-def pad(m, r: Interval, absolute: bool = False) -> Interval:
-    lo, hi = r.lo, r.hi
-    slack = m.tiny + (m.eps if absolute else 0.0)
-    lo = lo - (m.abs(lo) * m.eps + slack)
-    hi = hi + (m.abs(hi) * m.eps + slack)
+def pad(m, r: Interval, transcendental: bool = False) -> Interval:
+    eps = m.eps_t if transcendental else m.eps
+    slack = m.tiny + (eps if transcendental else 0.0)
+    lo = r.lo - (m.abs(r.lo) * eps + slack)
+    hi = r.hi + (m.abs(r.hi) * eps + slack)
     lo = m.select(m.isnan(lo), -math.inf, lo)
     hi = m.select(m.isnan(hi), math.inf, hi)
     return Interval(lo, hi)

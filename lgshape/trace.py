@@ -35,7 +35,7 @@ import numpy as np
 from . import bounds, grid as gridmod
 from .arraymath import DrJitMath
 from .expr import Expr, evaluate, gradient, parse, ray_derivatives
-from .interval import magnitude
+from .interval import Interval
 from .surfaces import Implicit
 
 MAX_LEVEL = 22          # bisection depth bound inside one cell segment
@@ -139,7 +139,7 @@ class Surface:
         key = Float
         if key not in self._device:
             import drjit as dr
-            m = DrJitMath(Float)
+            m = (DrJitMath(Float), DrJitMath(dr.float64_array_t(Float)))
             dev = gridmod.DeviceGrid(self.grid, Float)
             box = ([dr.opaque(Float, float(v)) for v in self.lo],
                    [dr.opaque(Float, float(v)) for v in self.hi])
@@ -160,7 +160,7 @@ class Surface:
         import drjit as dr
         p, _ = self._arrays(p, p)
         Float = type(p.x)
-        m = self._kernel_data(Float)[0]
+        m = self._kernel_data(Float)[0][0]
         gx, gy, gz = evaluate(list(gradient(self.expr)), {"x": p.x, "y": p.y, "z": p.z}, m)
         return type(p)(gx, gy, gz)
 
@@ -174,7 +174,7 @@ class Surface:
     def value(self, p):
         """f at points p."""
         p, _ = self._arrays(p, p)
-        return evaluate(self.expr, {"x": p.x, "y": p.y, "z": p.z}, self._kernel_data(type(p.x))[0])
+        return evaluate(self.expr, {"x": p.x, "y": p.y, "z": p.z}, self._kernel_data(type(p.x))[0][0])
 
     def intersect(self, o, d, t_min=0.0, t_max=math.inf, active=True):
         """Nearest root t in [t_min, t_max] along o + t d: returns (t, hit),
@@ -194,7 +194,8 @@ class Surface:
         UInt32 = dr.uint32_array_t(Float)
         Int32 = dr.int32_array_t(Float)
         Bool = dr.mask_t(Float)
-        m, dev, G_hand, (blo, bhi), diag = self._kernel_data(Float)
+        (m, m64), dev, _, (blo, bhi), diag = self._kernel_data(Float)
+        Float64 = m64.Float
         n = max(dr.width(o), dr.width(d))
         f, ge, he = self.expr, self.g_expr, self.h_expr
         mode = self.search
@@ -218,11 +219,26 @@ class Surface:
         cell = dr.minimum(dr.minimum(dev.cell[0], dev.cell[1]), dev.cell[2])
         margin = 1e-3 * cell / dlen          # neighbouring segments overlap by this much
         r_min = 1e-6 * diag / dlen           # minimum half width of a search interval
-        tol = 1e-7 * diag / dlen             # refinement tolerance in t
-        ray = {"dx": d.x, "dy": d.y, "dz": d.z}
+        tol = Float64(1e-7 * diag / dlen)    # refinement tolerance in t
+        # Values at points of the ray are taken in float64 (as enclosures in
+        # the search), so float32 rounding noise never decides a sign.
+        o64 = [Float64(o[i]) for i in range(3)]
+        d64 = [Float64(d[i]) for i in range(3)]
+        ray64 = {"dx": d64[0], "dy": d64[1], "dz": d64[2]}
 
-        def point(t):
-            return {"x": o.x + t * d.x, "y": o.y + t * d.y, "z": o.z + t * d.z}
+        def point64(t):
+            t = Float64(t)
+            return {v: o64[i] + t * d64[i] for i, v in enumerate("xyz")}
+
+        def enclose_at(exprs, t):
+            """Float32 enclosures of exprs at o + t d, from float64 intervals."""
+            T = Float64(t)
+            out = []
+            for r in bounds.segment_interval(exprs, o64, d64, T, T, m64):
+                lo, hi = Float(r.lo), Float(r.hi)
+                out.append(Interval(lo - (dr.abs(lo) * 2.0**-23 + 1e-38),
+                                    hi + (dr.abs(hi) * 2.0**-23 + 1e-38)))
+            return out
 
         def sgn(v):
             return dr.select(v > 0, 1, dr.select(v < 0, -1, 0))
@@ -233,9 +249,8 @@ class Surface:
 
         def interval_of(level, idx, a, b):
             w = (b - a) / Float(UInt32(1) << UInt32(level))
-            lo = a + Float(idx) * w
             last = idx + 1 == (Int32(1) << level)
-            return lo, dr.select(last, b, lo + w)
+            return a + Float(idx) * w, dr.select(last, b, a + Float(idx + 1) * w)
 
         def advance(level, idx):
             """The next interval to the right in the implicit binary tree."""
@@ -251,49 +266,53 @@ class Surface:
             def body(level, idx, active, status, t_lo, t_hi, s_lo, evals, iters):
                 lo, hi = interval_of(level, idx, a, b)
                 tm, r = 0.5 * (lo + hi), 0.5 * (hi - lo)
+                # F (and g) at t_m as enclosures: float32 rounding of the
+                # point evaluation is covered, so no decision rests on noise.
                 if mode == "interval":
                     # Mean-value form: g over [lo, hi] by interval arithmetic.
-                    F = evaluate(f, point(tm), m)
+                    Fm, = enclose_at([f], tm)
                     gi = bounds.segment_interval(ge, o, d, lo, hi, m)
                     g_lo, g_hi = gi.lo, gi.hi
-                    F_lo = F + dr.minimum(r * g_lo, -r * g_hi)
-                    F_hi = F + dr.maximum(r * g_hi, -r * g_lo)
-                    Fa = (F - r * g_hi, F - r * g_lo)
-                    Fb = (F + r * g_lo, F + r * g_hi)
-                    evals = evals + (dr.select(active, 2, 0))
+                    F_lo = Fm.lo + dr.minimum(r * g_lo, -r * g_hi)
+                    F_hi = Fm.hi + dr.maximum(r * g_hi, -r * g_lo)
+                    Fa = (Fm.lo - r * g_hi, Fm.hi - r * g_lo)
+                    Fb = (Fm.lo + r * g_lo, Fm.hi + r * g_hi)
+                    evals = evals + dr.select(active, 2, 0)
                 else:
                     # Second-order Taylor form with G >= |h| (local or global).
-                    F, g = evaluate([f, ge], {**point(tm), **ray}, m)
+                    Fm, gm = enclose_at([f, ge], tm)
                     if mode == "taylor":
-                        hi_ = bounds.segment_interval(he, o, d, lo, hi, m)
-                        h_lo, h_hi = hi_.lo, hi_.hi
-                        evals = evals + (dr.select(active, 2, 0))
+                        hseg = bounds.segment_interval(he, o, d, lo, hi, m)
+                        h_lo, h_hi = hseg.lo, hseg.hi
+                        evals = evals + dr.select(active, 2, 0)
                     else:
                         h_lo, h_hi = -G_glob, G_glob
-                        evals = evals + (dr.select(active, 1, 0))
+                        evals = evals + dr.select(active, 1, 0)
                     G = dr.maximum(dr.abs(h_lo), dr.abs(h_hi))
-                    q, ag, gr = 0.5 * r * r, dr.abs(g) * r, g * r
-                    g_lo, g_hi = g - G * r, g + G * r       # the seed's |g(t_m)| > G r
-                    F_lo = F - ag + dr.minimum(h_lo, 0) * q
-                    F_hi = F + ag + dr.maximum(h_hi, 0) * q
-                    Fa = (F - gr + h_lo * q, F - gr + h_hi * q)
-                    Fb = (F + gr + h_lo * q, F + gr + h_hi * q)
+                    q = 0.5 * r * r
+                    ag = dr.maximum(dr.abs(gm.lo), dr.abs(gm.hi)) * r
+                    g_lo, g_hi = gm.lo - G * r, gm.hi + G * r    # the seed's |g(t_m)| > G r
+                    F_lo = Fm.lo - ag + dr.minimum(h_lo, 0) * q
+                    F_hi = Fm.hi + ag + dr.maximum(h_hi, 0) * q
+                    Fa = (Fm.lo - dr.maximum(gm.lo * r, gm.hi * r) + h_lo * q,
+                          Fm.hi - dr.minimum(gm.lo * r, gm.hi * r) + h_hi * q)
+                    Fb = (Fm.lo + dr.minimum(gm.lo * r, gm.hi * r) + h_lo * q,
+                          Fm.hi + dr.maximum(gm.lo * r, gm.hi * r) + h_hi * q)
+                F = 0.5 * (Fm.lo + Fm.hi)
                 excluded = ((F_lo > 0) | (F_hi < 0)) & dr.isfinite(F)
                 monotone = (g_lo > 0) | (g_hi < 0)
-                s_a, s_b, s_m = sign_of(*Fa), sign_of(*Fb), sgn(F)
+                s_a, s_b, s_m = sign_of(*Fa), sign_of(*Fb), sign_of(Fm.lo, Fm.hi)
                 left = monotone & (s_m != 0) & (s_a == -s_m)
                 right = monotone & ~left & (s_m != 0) & (s_b == -s_m)
-                exact = monotone & (F == 0)
                 empty = excluded | (monotone & (s_m != 0) & (s_a == s_m) & (s_b == s_m))
-                bracket = active & ~empty & (left | right | exact)
+                bracket = active & ~empty & (left | right)
                 tiny = active & ~empty & ~bracket & ((r < r_min) | (level >= MAX_LEVEL))
                 split = active & ~empty & ~bracket & ~tiny
 
                 status = dr.select(bracket, BRACKET, dr.select(tiny, TINY, status))
                 t_lo = dr.select(bracket, dr.select(left, lo, tm), dr.select(tiny, lo, t_lo))
-                t_hi = dr.select(bracket, dr.select(left, tm, dr.select(exact, tm, hi)),
-                                 dr.select(tiny, hi, t_hi))
-                s_lo = dr.select(bracket, dr.select(left, s_a, s_m), s_lo)
+                t_hi = dr.select(bracket, dr.select(left, tm, hi), dr.select(tiny, hi, t_hi))
+                s_lo = dr.select(bracket, dr.select(left, s_a, s_m), dr.select(tiny, s_m, s_lo))
 
                 level_n, idx_n, done = advance(level, idx)
                 advancing = active & empty
@@ -311,10 +330,11 @@ class Surface:
 
         # ---- Refine a bracket with one sign change: safeguarded Newton ----
         def refine(active, t_lo, t_hi, s_lo, evals, iters):
+            """Newton in float64 inside the bracket, bisection where a step leaves it."""
             def body(active, t_lo, t_hi, t, F, g, evals, iters):
                 tn = t - F / g
                 tn = dr.select((tn > t_lo) & (tn < t_hi), tn, 0.5 * (t_lo + t_hi))
-                Fn, gn = evaluate([f, ge], {**point(tn), **ray}, m)
+                Fn, gn = evaluate([f, ge], {**point64(tn), **ray64}, m64)
                 same = sgn(Fn) == s_lo
                 t_lo = dr.select(active & same, tn, t_lo)
                 t_hi = dr.select(active & ~same, tn, t_hi)
@@ -325,11 +345,11 @@ class Surface:
                 active = active & (~conv & (iters < self.max_iterations))
                 return (active, t_lo, t_hi, t, F, g, evals, iters)
 
-            nan = dr.full(Float, math.nan, n)
-            state = (Bool(active), t_lo, t_hi, nan, nan, nan, evals, iters)
+            nan = dr.full(Float64, math.nan, n)
+            state = (Bool(active), Float64(t_lo), Float64(t_hi), nan, nan, nan, evals, iters)
             out = dr.while_loop(state=state, cond=lambda active, *_: active, body=body,
                                 label="lgshape_refine")
-            return out[3], out[6], out[7]
+            return Float(out[3]), out[6], out[7]
 
         # ---- Outer loop: occupied cells nearest first ----
         def body(active, resume, a, b, level, idx, t_hit, hit, unres, evals, iters, t_cur, *dstate):
@@ -347,18 +367,23 @@ class Surface:
                 a, b, level, idx, active, evals, iters)
             status = dr.select(active, status, NONE)
 
-            # A tiny interval (tangent, singular point, crease): a root only
-            # where F changes sign across it; otherwise resume after it.
+            # A tiny interval (tangent, singular point, crease, or F within
+            # float32 noise of 0): a root where F changes sign across it or
+            # where F at its middle cannot be told from 0; else resume after it.
             tiny = status == TINY
-            F1 = evaluate(f, point(t_lo), m)
-            F2 = evaluate(f, point(t_hi), m)
+            noise_zero = tiny & (s_lo == 0)
+            F1 = evaluate(f, point64(t_lo), m64)
+            F2 = evaluate(f, point64(t_hi), m64)
             evals = evals + (dr.select(tiny, 2, 0))
             s1, s2 = sgn(F1), sgn(F2)
-            tiny_root = tiny & (s1 != s2)
+            tiny_root = tiny & ((s1 != s2) | noise_zero)
             bracket = (status == BRACKET) | tiny_root
             s_lo = dr.select(tiny, s1, s_lo)
-            t_lo = dr.select(tiny & (s1 == 0), t_lo, dr.select(tiny & (s2 == 0), t_hi, t_lo))
-            t_hi = dr.select(tiny & (s1 == 0), t_lo, t_hi)
+            # Refinement needs a sign change; otherwise the hit is the middle.
+            flat = tiny & ((s1 == s2) | (s1 == 0) | (s2 == 0))
+            t_mid = 0.5 * (t_lo + t_hi)
+            t_lo = dr.select(flat, dr.select(s1 == 0, t_lo, dr.select(s2 == 0, t_hi, t_mid)), t_lo)
+            t_hi = dr.select(flat, t_lo, t_hi)
             if any_hit:
                 t_root = 0.5 * (t_lo + t_hi)
             else:

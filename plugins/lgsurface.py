@@ -140,7 +140,7 @@ class LGSurface(mi.Mesh):
         except lgshape.ParseError as err:
             raise ValueError(f"lgsurface: malformed 'expr': {err}") from None
 
-        self.matrix = np.array(mi.ScalarTransform4f(to_world).matrix, dtype=np.float64)
+        self.matrix = np.array(to_world.matrix, dtype=np.float64)
         self.inverse = np.linalg.inv(self.matrix)
         if not np.all(np.isfinite(self.inverse)):
             raise ValueError("lgsurface: 'to_world' is not invertible")

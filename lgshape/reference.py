@@ -1,0 +1,81 @@
+"""Float64 reference intersections, independent of the Dr.Jit kernel.
+
+Two oracles over numpy float64, for tests and the benchmark:
+
+- :func:`polynomial_roots`: for an algebraic f of known degree n, F(t) along
+  each ray is expanded exactly (sampled at n + 1 Chebyshev nodes of the
+  clipped segment and solved for its coefficients), and all n roots come
+  from the eigenvalues of the companion matrix (batched ``numpy.linalg``);
+- :func:`first_sign_change`: for any f, dense sampling of F along the ray
+  and bisection of the first sign change (a brute-force reference; it can
+  miss features thinner than its step, which is why the step is given).
+
+``F`` is a callable ``F(X, Y, Z) -> values`` on float64 arrays.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def clip_to_box(o, d, lo, hi, t_min=0.0, t_max=np.inf):
+    """Per-ray [t0, t1] of o + t d inside the box (t0 > t1 where missed)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        ta, tb = (lo - o) * inv, (hi - o) * inv
+        tn = np.where(d == 0, np.where((o >= lo) & (o <= hi), -np.inf, np.inf), np.minimum(ta, tb))
+        tf = np.where(d == 0, np.where((o >= lo) & (o <= hi), np.inf, -np.inf), np.maximum(ta, tb))
+    return np.maximum(tn.max(1), t_min), np.minimum(tf.min(1), t_max)
+
+
+def along(F, o, d, t):
+    """F at o + t d; t has shape (n,) or (n, k)."""
+    t = np.asarray(t, np.float64)
+    if t.ndim == 1:
+        return F(*(o[:, i] + t * d[:, i] for i in range(3)))
+    return F(*(o[:, None, i] + t * d[:, None, i] for i in range(3)))
+
+
+def polynomial_roots(F, degree: int, o, d, t0, t1):
+    """All complex roots t of F along each ray, shape (n, degree); the
+    expansion is made over [t0, t1] (rays with t0 > t1 give NaN)."""
+    n = len(o)
+    ok = t1 > t0
+    tc, th = 0.5 * (t0 + t1), 0.5 * (t1 - t0)
+    th = np.where(ok, th, 1.0)
+    tc = np.where(ok, tc, 0.0)
+    nodes = np.cos(np.pi * (np.arange(degree + 1) + 0.5) / (degree + 1))
+    V = np.vander(nodes, degree + 1, increasing=True)        # s^k
+    samples = along(F, o, d, tc[:, None] + th[:, None] * nodes[None])
+    coef = np.linalg.solve(V, samples.T).T                   # (n, degree + 1), s^0 first
+    lead = coef[:, -1]
+    scale = np.abs(coef).max(1)
+    lead = np.where(np.abs(lead) < 1e-14 * scale, 1e-14 * scale + 1e-300, lead)
+    comp = np.zeros((n, degree, degree))
+    comp[:, 1:, :-1] = np.eye(degree - 1)
+    comp[:, :, -1] = -coef[:, :-1] / lead[:, None]
+    s = np.linalg.eigvals(comp)
+    t = tc[:, None] + th[:, None] * s
+    t[~ok] = np.nan
+    return t
+
+
+def first_sign_change(F, o, d, t0, t1, steps: int = 4096, bisections: int = 50):
+    """First root of F on [t0, t1] by sampling ``steps`` points and bisecting
+    the first sign change; inf where there is none."""
+    n = len(o)
+    ok = t1 > t0
+    s = np.linspace(0.0, 1.0, steps + 1)
+    t = t0[:, None] + (t1 - t0)[:, None] * s[None]
+    v = along(F, o, d, t)
+    change = (np.sign(v[:, :-1]) * np.sign(v[:, 1:]) <= 0) & ok[:, None]
+    has = change.any(1)
+    k = np.argmax(change, 1)
+    a, b = t[np.arange(n), k], t[np.arange(n), k + 1]
+    fa = v[np.arange(n), k]
+    for _ in range(bisections):
+        mid = 0.5 * (a + b)
+        fm = along(F, o, d, mid)
+        left = np.sign(fm) * np.sign(fa) <= 0
+        b = np.where(left, mid, b)
+        a, fa = np.where(left, a, mid), np.where(left, fa, fm)
+    return np.where(has, 0.5 * (a + b), np.inf)
