@@ -69,6 +69,17 @@ def _as_expr(expr):
                     f"not {type(expr).__name__}")
 
 
+def _point_error(f, lo, hi) -> float:
+    from .arraymath import NUMPY
+    from .expr import evaluate_interval
+    from .expr.node import topological
+    nodes = [n for n in topological([f]) if n.op not in ("const", "var")]
+    with np.errstate(all="ignore"):
+        res = evaluate_interval(nodes, bounds.box_env(lo[None], hi[None]), NUMPY)
+    total = sum(float(np.max(np.maximum(np.abs(r.lo), np.abs(r.hi)))) for r in res)
+    return total * 2.0**-40 if np.isfinite(total) else 0.0
+
+
 class Surface:
     """An implicit surface f = 0 inside a box, ready for guaranteed ray queries.
 
@@ -109,6 +120,10 @@ class Surface:
         self.grid = gridmod.build(f, lo, hi, self.depth,
                                   mode="global" if L is not None else "local", L=L)
         self._device = {}
+        # Absolute error bound of a float64 point evaluation of f in the box
+        # (POINT_ERROR): 2^-40 times the sum over the DAG of each node's
+        # largest magnitude over the box (float64 interval arithmetic).
+        self.point_error = _point_error(f, lo, hi)
 
     # -- host-side facts ------------------------------------------------------
     @property
@@ -198,8 +213,8 @@ class Surface:
         Float64 = m64.Float
         n = max(dr.width(o), dr.width(d))
         f, ge, he = self.expr, self.g_expr, self.h_expr
-        mode = self.search
-        if mode == "global":
+        search_mode = self.search
+        if search_mode == "global":
             G_glob = dr.opaque(Float, self.global_G()) * dr.squared_norm(d)
 
         # ---- Clip to the bounding box ----
@@ -230,22 +245,18 @@ class Surface:
             t = Float64(t)
             return {v: o64[i] + t * d64[i] for i, v in enumerate("xyz")}
 
-        def enclose_at(exprs, t):
-            """Float32 enclosures of exprs at o + t d, from float64 intervals."""
-            T = Float64(t)
-            out = []
-            for r in bounds.segment_interval(exprs, o64, d64, T, T, m64):
-                lo, hi = Float(r.lo), Float(r.hi)
-                out.append(Interval(lo - (dr.abs(lo) * 2.0**-23 + 1e-38),
-                                    hi + (dr.abs(hi) * 2.0**-23 + 1e-38)))
-            return out
-
         def sgn(v):
             return dr.select(v > 0, 1, dr.select(v < 0, -1, 0))
 
         def sign_of(lo, hi):
             """+1 / -1 where [lo, hi] has one strict sign, else 0."""
             return dr.select(lo > 0, 1, dr.select(hi < 0, -1, 0))
+
+        def enclose(v):
+            """A float32 enclosure of a float64 point value (see POINT_ERROR)."""
+            lo, hi = Float(v), Float(v)
+            pad_abs = float(self.point_error)
+            return (lo - (dr.abs(lo) * 2.0**-22 + pad_abs), hi + (dr.abs(hi) * 2.0**-22 + pad_abs))
 
         def interval_of(level, idx, a, b):
             w = (b - a) / Float(UInt32(1) << UInt32(level))
@@ -259,153 +270,143 @@ class Surface:
             level, idx = level - tz, nxt >> tz
             return level, idx, (level == 0) & (idx == 1)
 
-        # ---- Search [a, b] from interval (level, idx): stackless bisection ----
-        NONE, BRACKET, TINY = 0, 1, 2
+        def newton(t, F, g, t_lo, t_hi):
+            tn = t - F / g
+            return dr.select((tn > t_lo) & (tn < t_hi), tn, 0.5 * (t_lo + t_hi))
 
-        def search(a, b, level, idx, active, evals, iters):
-            def body(level, idx, active, status, t_lo, t_hi, s_lo, evals, iters):
-                lo, hi = interval_of(level, idx, a, b)
-                tm, r = 0.5 * (lo + hi), 0.5 * (hi - lo)
-                # F (and g) at t_m as enclosures: float32 rounding of the
-                # point evaluation is covered, so no decision rests on noise.
-                if mode == "interval":
-                    # Mean-value form: g over [lo, hi] by interval arithmetic.
-                    Fm, = enclose_at([f], tm)
-                    gi = bounds.segment_interval(ge, o, d, lo, hi, m)
-                    g_lo, g_hi = gi.lo, gi.hi
-                    F_lo = Fm.lo + dr.minimum(r * g_lo, -r * g_hi)
-                    F_hi = Fm.hi + dr.maximum(r * g_hi, -r * g_lo)
-                    Fa = (Fm.lo - r * g_hi, Fm.hi - r * g_lo)
-                    Fb = (Fm.lo + r * g_lo, Fm.hi + r * g_hi)
-                    evals = evals + dr.select(active, 2, 0)
-                else:
-                    # Second-order Taylor form with G >= |h| (local or global).
-                    Fm, gm = enclose_at([f, ge], tm)
-                    if mode == "taylor":
-                        hseg = bounds.segment_interval(he, o, d, lo, hi, m)
-                        h_lo, h_hi = hseg.lo, hseg.hi
-                        evals = evals + dr.select(active, 2, 0)
-                    else:
-                        h_lo, h_hi = -G_glob, G_glob
-                        evals = evals + dr.select(active, 1, 0)
-                    G = dr.maximum(dr.abs(h_lo), dr.abs(h_hi))
-                    q = 0.5 * r * r
-                    ag = dr.maximum(dr.abs(gm.lo), dr.abs(gm.hi)) * r
-                    g_lo, g_hi = gm.lo - G * r, gm.hi + G * r    # the seed's |g(t_m)| > G r
-                    F_lo = Fm.lo - ag + dr.minimum(h_lo, 0) * q
-                    F_hi = Fm.hi + ag + dr.maximum(h_hi, 0) * q
-                    Fa = (Fm.lo - dr.maximum(gm.lo * r, gm.hi * r) + h_lo * q,
-                          Fm.hi - dr.minimum(gm.lo * r, gm.hi * r) + h_hi * q)
-                    Fb = (Fm.lo + dr.minimum(gm.lo * r, gm.hi * r) + h_lo * q,
-                          Fm.hi + dr.maximum(gm.lo * r, gm.hi * r) + h_hi * q)
-                F = 0.5 * (Fm.lo + Fm.hi)
-                excluded = ((F_lo > 0) | (F_hi < 0)) & dr.isfinite(F)
-                monotone = (g_lo > 0) | (g_hi < 0)
-                s_a, s_b, s_m = sign_of(*Fa), sign_of(*Fb), sign_of(Fm.lo, Fm.hi)
-                left = monotone & (s_m != 0) & (s_a == -s_m)
-                right = monotone & ~left & (s_m != 0) & (s_b == -s_m)
-                empty = excluded | (monotone & (s_m != 0) & (s_a == s_m) & (s_b == s_m))
-                bracket = active & ~empty & (left | right)
-                tiny = active & ~empty & ~bracket & ((r < r_min) | (level >= MAX_LEVEL))
-                split = active & ~empty & ~bracket & ~tiny
+        # One loop; each lane is in one of these modes. Every iteration takes
+        # one float64 point evaluation (F, g) and one interval evaluation.
+        SEEK, SEARCH, REFINE, TINY_A, TINY_B, DONE = range(6)
+        max_it = self.max_iterations
 
-                status = dr.select(bracket, BRACKET, dr.select(tiny, TINY, status))
-                t_lo = dr.select(bracket, dr.select(left, lo, tm), dr.select(tiny, lo, t_lo))
-                t_hi = dr.select(bracket, dr.select(left, tm, hi), dr.select(tiny, hi, t_hi))
-                s_lo = dr.select(bracket, dr.select(left, s_a, s_m), dr.select(tiny, s_m, s_lo))
-
-                level_n, idx_n, done = advance(level, idx)
-                advancing = active & empty
-                level = dr.select(split, level + 1, dr.select(advancing, level_n, level))
-                idx = dr.select(split, idx << 1, dr.select(advancing, idx_n, idx))
-                iters = iters + (dr.select(active, 1, 0))
-                active = (split | (advancing & ~done)) & (iters < self.max_iterations)
-                return (level, idx, active, status, t_lo, t_hi, s_lo, evals, iters)
-
-            state = (level, idx, Bool(active), dr.zeros(Int32, n), dr.zeros(Float, n),
-                     dr.zeros(Float, n), dr.zeros(Int32, n), evals, iters)
-            out = dr.while_loop(state=state, cond=lambda level, idx, active, *_: active,
-                                body=body, label="lgshape_search")
-            return out   # level, idx, active, status, t_lo, t_hi, s_lo, evals, iters
-
-        # ---- Refine a bracket with one sign change: safeguarded Newton ----
-        def refine(active, t_lo, t_hi, s_lo, evals, iters):
-            """Newton in float64 inside the bracket, bisection where a step leaves it."""
-            def body(active, t_lo, t_hi, t, F, g, evals, iters):
-                tn = t - F / g
-                tn = dr.select((tn > t_lo) & (tn < t_hi), tn, 0.5 * (t_lo + t_hi))
-                Fn, gn = evaluate([f, ge], {**point64(tn), **ray64}, m64)
-                same = sgn(Fn) == s_lo
-                t_lo = dr.select(active & same, tn, t_lo)
-                t_hi = dr.select(active & ~same, tn, t_hi)
-                conv = (dr.abs(tn - t) < tol) | (t_hi - t_lo < tol) | (Fn == 0)
-                t, F, g = (dr.select(active, new, old) for new, old in ((tn, t), (Fn, F), (gn, g)))
-                evals = evals + (dr.select(active, 1, 0))
-                iters = iters + (dr.select(active, 1, 0))
-                active = active & (~conv & (iters < self.max_iterations))
-                return (active, t_lo, t_hi, t, F, g, evals, iters)
-
-            nan = dr.full(Float64, math.nan, n)
-            state = (Bool(active), Float64(t_lo), Float64(t_hi), nan, nan, nan, evals, iters)
-            out = dr.while_loop(state=state, cond=lambda active, *_: active, body=body,
-                                label="lgshape_refine")
-            return Float(out[3]), out[6], out[7]
-
-        # ---- Outer loop: occupied cells nearest first ----
-        def body(active, resume, a, b, level, idx, t_hit, hit, unres, evals, iters, t_cur, *dstate):
-            # Lanes not resuming a segment move on to the next occupied cell.
+        def body(mode, t_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo,
+                 t_hit, hit, unres, evals, iters, *dstate):
+            # ---- Next occupied cell (DDA, jumping empty bricks) ----
             q = gridmod.DDA.from_state(dstate)
-            found, ta, tb, q, t_cur = gridmod.dda_next_occupied(dev, q, t_cur, t_end, active & ~resume)
-            fresh = active & ~resume
-            a = dr.select(fresh, dr.maximum(ta - margin, t_start), a)
-            b = dr.select(fresh, dr.minimum(tb + margin, t_end), b)
-            level = dr.select(fresh, 0, level)
-            idx = dr.select(fresh, 0, idx)
-            active = active & ((found | resume) & (a <= b))
+            seek = mode == SEEK
+            found, ta, tb, q, t_cur = gridmod.dda_next_occupied(dev, q, t_cur, t_end, seek)
+            a = dr.select(seek, dr.maximum(ta - margin, t_start), a)
+            b = dr.select(seek, dr.minimum(tb + margin, t_end), b)
+            level = dr.select(seek, 0, level)
+            idx = dr.select(seek, 0, idx)
+            mode = dr.select(seek, dr.select(found & (a <= b), SEARCH, DONE), mode)
 
-            level, idx, _, status, t_lo, t_hi, s_lo, evals, iters = search(
-                a, b, level, idx, active, evals, iters)
-            status = dr.select(active, status, NONE)
+            # ---- Evaluations ----
+            searching = mode == SEARCH
+            refining = mode == REFINE
+            lo, hi = interval_of(level, idx, a, b)
+            tm, r = 0.5 * (lo + hi), 0.5 * (hi - lo)
+            t_eval = dr.select(searching, Float64(tm), t_n)
+            F, g = evaluate([f, ge], {**point64(t_eval), **ray64}, m64)
+            busy = mode != DONE
+            iters = iters + dr.select(busy, 1, 0)
+            if search_mode == "interval":
+                seg = bounds.segment_interval(ge, o, d, lo, hi, m)
+            elif search_mode == "taylor":
+                seg = bounds.segment_interval(he, o, d, lo, hi, m)
+            evals = evals + dr.select(busy, 1, 0) + dr.select(searching & (search_mode != "global"), 1, 0)
 
-            # A tiny interval (tangent, singular point, crease, or F within
-            # float32 noise of 0): a root where F changes sign across it or
-            # where F at its middle cannot be told from 0; else resume after it.
-            tiny = status == TINY
-            noise_zero = tiny & (s_lo == 0)
-            F1 = evaluate(f, point64(t_lo), m64)
-            F2 = evaluate(f, point64(t_hi), m64)
-            evals = evals + (dr.select(tiny, 2, 0))
-            s1, s2 = sgn(F1), sgn(F2)
-            tiny_root = tiny & ((s1 != s2) | noise_zero)
-            bracket = (status == BRACKET) | tiny_root
-            s_lo = dr.select(tiny, s1, s_lo)
-            # Refinement needs a sign change; otherwise the hit is the middle.
-            flat = tiny & ((s1 == s2) | (s1 == 0) | (s2 == 0))
-            t_mid = 0.5 * (t_lo + t_hi)
-            t_lo = dr.select(flat, dr.select(s1 == 0, t_lo, dr.select(s2 == 0, t_hi, t_mid)), t_lo)
-            t_hi = dr.select(flat, t_lo, t_hi)
-            if any_hit:
-                t_root = 0.5 * (t_lo + t_hi)
+            # ---- Search step: exclude, bracket, split (or tiny) ----
+            Fm = enclose(F)
+            if search_mode == "interval":
+                # Mean-value form: F(t) in F(t_m) + [g] [-r, r].
+                g_lo, g_hi = seg.lo, seg.hi
+                F_lo = Fm[0] + dr.minimum(r * g_lo, -r * g_hi)
+                F_hi = Fm[1] + dr.maximum(r * g_hi, -r * g_lo)
+                Fa = (Fm[0] - r * g_hi, Fm[1] - r * g_lo)
+                Fb = (Fm[0] + r * g_lo, Fm[1] + r * g_hi)
             else:
-                t_root, evals, iters = refine(bracket, t_lo, t_hi, s_lo, evals, iters)
-            hit = hit | bracket
-            unres = unres | tiny_root
-            t_hit = dr.select(bracket, t_root, t_hit)
-            level_n, idx_n, done = advance(level, idx)
-            resume = tiny & ~tiny_root & ~done
-            level = dr.select(resume, level_n, level)
-            idx = dr.select(resume, idx_n, idx)
-            active = active & (~bracket & (iters < self.max_iterations))
-            return (active, resume, a, b, level, idx, t_hit, hit, unres, evals, iters, t_cur, *q.state())
+                # Second-order Taylor form with G >= |h|: the seed's |g(t_m)| > G r.
+                h_lo, h_hi = (seg.lo, seg.hi) if search_mode == "taylor" else (-G_glob, G_glob)
+                G = dr.maximum(dr.abs(h_lo), dr.abs(h_hi))
+                gm = enclose(g)
+                q2 = 0.5 * r * r
+                gr_lo, gr_hi = gm[0] * r, gm[1] * r
+                ag = dr.maximum(dr.abs(gr_lo), dr.abs(gr_hi))
+                g_lo, g_hi = gm[0] - G * r, gm[1] + G * r
+                F_lo = Fm[0] - ag + dr.minimum(h_lo, 0) * q2
+                F_hi = Fm[1] + ag + dr.maximum(h_hi, 0) * q2
+                Fa = (Fm[0] - gr_hi + h_lo * q2, Fm[1] - gr_lo + h_hi * q2)
+                Fb = (Fm[0] + gr_lo + h_lo * q2, Fm[1] + gr_hi + h_hi * q2)
+            excluded = ((F_lo > 0) | (F_hi < 0)) & dr.isfinite(F)
+            monotone = (g_lo > 0) | (g_hi < 0)
+            s_a, s_b, s_m = sign_of(*Fa), sign_of(*Fb), sign_of(*Fm)
+            left = monotone & (s_m != 0) & (s_a == -s_m)
+            right = monotone & ~left & (s_m != 0) & (s_b == -s_m)
+            empty = searching & (excluded | (monotone & (s_m != 0) & (s_a == s_m) & (s_b == s_m)))
+            bracket = searching & ~empty & (left | right)
+            tiny = searching & ~empty & ~bracket & ((r < r_min) | (level >= MAX_LEVEL))
+            split = searching & ~empty & ~bracket & ~tiny
+            # A tiny interval whose middle value cannot be told from 0 is a
+            # hit (a tangent touch or singular point, to float precision).
+            tiny_zero = tiny & (s_m == 0)
+            tiny_check = tiny & ~tiny_zero
+
+            # ---- Tiny interval: F at both ends decides (two iterations) ----
+            tiny_a = mode == TINY_A
+            tiny_b = mode == TINY_B
+            s1, s2 = sgn(F_a), sgn(F)
+            tiny_root = tiny_b & (s1 != s2)
+            tiny_at_end = tiny_root & ((s1 == 0) | (s2 == 0))
+            tiny_bracket = tiny_root & ~tiny_at_end
+            tiny_none = tiny_b & ~tiny_root
+
+            # ---- Refinement: safeguarded Newton in float64 ----
+            same = sgn(F) == s_lo
+            r_lo = dr.select(refining & same, t_n, t_lo)
+            r_hi = dr.select(refining & ~same, t_n, t_hi)
+            t_next = newton(t_n, F, g, r_lo, r_hi)
+            conv = refining & ((dr.abs(t_next - t_n) < tol) | (r_hi - r_lo < tol) | (F == 0))
+
+            # ---- Transitions ----
+            lv_n, ix_n, seg_done = advance(level, idx)
+            moving_on = empty | tiny_none
+            level = dr.select(split, level + 1, dr.select(moving_on, lv_n, level))
+            idx = dr.select(split, idx << 1, dr.select(moving_on, ix_n, idx))
+            tm64 = Float64(tm)
+            t_lo = dr.select(bracket, Float64(dr.select(left, lo, tm)),
+                             dr.select(tiny_check, Float64(lo), dr.select(refining, r_lo, t_lo)))
+            t_hi = dr.select(bracket, Float64(dr.select(left, tm, hi)),
+                             dr.select(tiny_check, Float64(hi), dr.select(refining, r_hi, t_hi)))
+            s_lo = dr.select(bracket, dr.select(left, s_a, s_m), dr.select(tiny_bracket, s1, s_lo))
+            F_a = dr.select(tiny_a, F, F_a)
+            t_n = dr.select(bracket, newton(tm64, F, g, t_lo, t_hi),
+                  dr.select(tiny_check, t_lo,
+                  dr.select(tiny_a, t_hi,
+                  dr.select(tiny_bracket, 0.5 * (t_lo + t_hi),
+                  dr.select(refining, t_next, t_n)))))
+
+            first_hit = (tiny_zero | (any_hit & (bracket | tiny_bracket)) | tiny_at_end | conv)
+            if any_hit:
+                t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, dr.select(s1 == 0, t_lo, t_hi),
+                                    dr.select(conv, t_next, 0.5 * (t_lo + t_hi))))
+            else:
+                t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, dr.select(s1 == 0, t_lo, t_hi), t_next))
+            hit = hit | first_hit
+            unres = unres | (first_hit & (tiny_zero | tiny_at_end)) | (tiny_bracket & ~hit)
+            t_hit = dr.select(first_hit, Float(t_found), t_hit)
+
+            mode = dr.select(first_hit, DONE,
+                   dr.select(bracket | tiny_bracket, REFINE,
+                   dr.select(tiny_check, TINY_A,
+                   dr.select(tiny_a, TINY_B,
+                   dr.select(moving_on, dr.select(seg_done, SEEK, SEARCH),
+                   dr.select(tiny_b, SEARCH, mode))))))
+            mode = dr.select(iters >= max_it, DONE, mode)
+            return (mode, t_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo,
+                    t_hit, hit, unres, evals, iters, *q.state())
 
         dda = gridmod.DDA(dev, o, d, t_start)
+
         def z(T):
             return dr.zeros(T, n)
-        state = (active, z(Bool), z(Float), z(Float), z(Int32), z(Int32), dr.full(Float, math.inf, n),
-                 z(Bool), z(Bool), z(UInt32), z(UInt32), Float(t_start), *dda.state())
-        out = dr.while_loop(state=state, cond=lambda active, *_: active, body=body,
-                            label="lgshape_cells")
-        t_hit, hit, unres, evals, iters = out[6:11]
-        capped = iters >= self.max_iterations
+        mode0 = dr.select(active, SEEK, DONE) + z(Int32)
+        state = (mode0, Float(t_start), z(Float), z(Float), z(Int32), z(Int32),
+                 z(Float64), z(Float64), z(Float64), z(Float64), z(Int32),
+                 dr.full(Float, math.inf, n), z(Bool), z(Bool), z(UInt32), z(UInt32), *dda.state())
+        out = dr.while_loop(state=state, cond=lambda mode, *_: mode != DONE, body=body,
+                            label="lgshape_search")
+        t_hit, hit, unres, evals, iters = out[11:16]
+        capped = iters >= max_it
         hit = hit & ~capped
         return RayResult(dr.select(hit, t_hit, math.inf), hit, evals, iters, capped, unres)
