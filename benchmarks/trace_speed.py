@@ -37,15 +37,18 @@ def main():
     ap.add_argument("surfaces", nargs="*", default=sorted(lgshape.surfaces.LIBRARY))
     ap.add_argument("--res", type=int, default=1024)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--depth", type=int, default=None, help="pruning depth (default: lgshape's)")
+    ap.add_argument("--search", default=None, help="search mode (default: lgshape's)")
     args = ap.parse_args()
     n = args.res ** 2
     print(f"{'surface':13} {'method':14} {'Mrays/s':>8} {'evals':>6} {'max':>6} {'capped':>6} "
           f"{'mem KiB':>8} {'speedup':>7}  disagreements (float64 says)")
     for name in args.surfaces:
         spec = lgshape.surfaces.LIBRARY[name]()
-        surf = lgshape.Surface(spec)
+        surf = lgshape.Surface(spec, depth=args.depth, search=args.search)
         o_np, d_np = camera.primary_rays(spec.bbox, args.res)
         o, d = Array3f(o_np.T.copy()), Array3f(d_np.T.copy())
+        dr.eval(o, d)
         L = float(bounds.lipschitz(spec.expr, surf.lo[None], surf.hi[None])[0])
         lg, t_lg = timed(lambda: surf.trace(o, d), args.repeats)
         st, t_st = timed(lambda: baselines.sphere_trace(surf, o, d, L), args.repeats)
@@ -59,7 +62,9 @@ def main():
 
             def F(X, Y, Z):
                 return evaluate(spec.expr, {"x": X, "y": Y, "z": Z})
-            ref = np.isfinite(first_sign_change(F, oo, dd, t0, t1, steps=8192))
+            ref = np.concatenate([np.isfinite(first_sign_change(F, oo[k:k + 1024], dd[k:k + 1024],
+                                                                t0[k:k + 1024], t1[k:k + 1024], steps=8192))
+                                  for k in range(0, len(dis), 1024)])
             lg_right = (h_lg[dis] == ref).sum()
             verdict = f"{len(dis)} px: lgshape right on {lg_right}, sphere tracer on {len(dis) - lg_right}"
         for label, r, t in (("lgshape", lg, t_lg), ("sphere-trace", st, t_st)):

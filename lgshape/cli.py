@@ -23,7 +23,13 @@ PASS_SECONDS = 1.0          # aim of one rendering pass: the progress bar's step
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "bench":
-        from . import bench
+        try:
+            from . import bench
+        except ModuleNotFoundError as err:
+            if err.name != "lgshape.bench":
+                raise
+            print("lgshape: error: the benchmark (lgshape.bench) is not installed", file=sys.stderr)
+            return 2
         return bench.main(argv[1:])
     args = _parser().parse_args(argv)
     try:
@@ -51,7 +57,6 @@ def _parser() -> argparse.ArgumentParser:
                    help=f"Mitsuba variant (default: {DEFAULT_VARIANT})")
     r.add_argument("-D", dest="defines", action="append", default=[], metavar="name=value",
                    help="set a <default> parameter of the scene, as in the mitsuba program")
-    r.add_argument("--seed", type=int, default=0, help="seed of the first pass (default: 0)")
     sub.add_parser("bench", help="run the benchmark (lgshape bench --help)", add_help=False)
     return p
 
@@ -87,9 +92,15 @@ def render(args) -> int:
     except Exception as err:  # Mitsuba reports parse and plugin errors as RuntimeError
         raise CommandError(f"cannot load {args.scene}:\n{err}") from None
 
+    from lgshape.plugins.common import lg_shapes
+    integrator = scene.integrator()
+    if lg_shapes(scene) and not type(integrator).__module__.startswith("lgshape.plugins"):
+        print(f"lgshape: warning: the integrator {type(integrator).__name__} does not see "
+              "lgsurface shapes; use lg_path, lg_direct or lg_aov", file=sys.stderr)
+
     sensor = scene.sensors()[0]
     spp = args.spp or sensor.sampler().sample_count()
-    image, names, seconds = _render_passes(mi, scene, sensor, spp, args.seed)
+    image, names, seconds = _render_passes(mi, scene, sensor, spp)
     bitmap = mi.Bitmap(image, channel_names=names)
 
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
@@ -106,7 +117,7 @@ def render(args) -> int:
     return 0
 
 
-def _render_passes(mi, scene, sensor, spp, seed):
+def _render_passes(mi, scene, sensor, spp):
     """Render ``spp`` samples in passes of about PASS_SECONDS each; returns
     (image as float32 numpy array, channel names, seconds)."""
     import numpy as np
@@ -114,9 +125,10 @@ def _render_passes(mi, scene, sensor, spp, seed):
     total, done, i, chunk = None, 0, 0, max(1, min(spp, 4))
     t0 = time.perf_counter()
     while done < spp:
-        n = min(chunk, spp - done)
+        left = spp - done
+        n = -(-left // -(-left // chunk))         # equal passes, no tiny last one
         t = time.perf_counter()
-        img = np.array(mi.render(scene, sensor=sensor, spp=n, seed=seed + i), dtype=np.float64)
+        img = np.array(mi.render(scene, sensor=sensor, spp=n, seed=i), dtype=np.float64)
         dt = time.perf_counter() - t
         total = img * n if total is None else total + img * n
         done, i = done + n, i + 1
@@ -124,8 +136,7 @@ def _render_passes(mi, scene, sensor, spp, seed):
         # Next pass: about PASS_SECONDS long, growing at most 4x.
         chunk = max(1, min(4 * n, int(n * PASS_SECONDS / max(dt, 1e-3))))
     bar.close()
-    names = list(sensor.film().bitmap().channel_names()) if hasattr(mi.Bitmap, "channel_names") \
-        else [f.name for f in sensor.film().bitmap().struct_()]
+    names = [field.name for field in sensor.film().bitmap().struct_()]
     return (total / spp).astype(np.float32), names, time.perf_counter() - t0
 
 
@@ -144,7 +155,8 @@ def _preview(mi, bitmap):
         rgb = np.repeat(aov[..., :1], 3, -1) if aov.shape[-1] < 3 else aov[..., :3]
         return mi.Bitmap(np.ascontiguousarray(rgb)).convert(
             mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=False)
-    fmt = mi.Bitmap.PixelFormat.RGBA if root.channel_count() in (2, 4) else mi.Bitmap.PixelFormat.RGB
+    alpha = root.channel_count() in (2, 4)
+    fmt = mi.Bitmap.PixelFormat.RGBA if alpha else mi.Bitmap.PixelFormat.RGB
     return root.convert(fmt, mi.Struct.Type.UInt8, srgb_gamma=True)
 
 
@@ -161,8 +173,9 @@ class _ProgressBar:
         frac = done / self.total
         fill = int(round(frac * self.WIDTH))
         eta = elapsed / frac - elapsed if frac > 0 else math.inf
-        sys.stderr.write(f"\rRendering [{'#' * fill}{'.' * (self.WIDTH - fill)}] {100 * frac:3.0f}% "
-                         f"{done}/{self.total} spp, {elapsed:.1f} s, ETA {eta:.1f} s ")
+        bar = "#" * fill + "." * (self.WIDTH - fill)
+        sys.stderr.write(f"\rRendering [{bar}] {100 * frac:3.0f}% {done}/{self.total} spp, "
+                         f"{elapsed:.1f} s, ETA {eta:.1f} s ")
         sys.stderr.flush()
 
     def close(self):

@@ -204,7 +204,8 @@ def dda_next_occupied(g: DeviceGrid, dda: DDA, t_cur, t_end, active):
         t_exit_cell = dr.minimum(dr.minimum(q.t_next[0], q.t_next[1]), q.t_next[2])
         # Exit of the whole (empty) brick: cells left to its far face per axis.
         n = [dr.select(q.step[a] > 0, B - (q.i[a] & 3), (q.i[a] & 3) + 1) for a in range(3)]
-        t_face = [q.t_next[a] + Float(n[a] - 1) * q.dt[a] for a in range(3)]
+        t_face = [dr.select(dr.isfinite(q.dt[a]), q.t_next[a] + Float(n[a] - 1) * q.dt[a], dr.inf)
+                  for a in range(3)]
         t_brick = dr.minimum(dr.minimum(t_face[0], t_face[1]), t_face[2])
         skip = active & ~has_brick
         t_stop = dr.select(skip, t_brick, t_exit_cell)
@@ -217,7 +218,7 @@ def dda_next_occupied(g: DeviceGrid, dda: DDA, t_cur, t_end, active):
                                dr.select(t_face[a] <= t_stop, n[a],
                                          dr.clip(Int32(dr.select(dr.isfinite(frac), frac, 1)), 1, n[a] - 1)))
             k = Int32(dr.select(skip, k_many, k_one))
-            k = dr.select(active & ~occupied | (occupied & active), k, 0)
+            k = dr.select(active, k, 0)
             new_i.append(q.i[a] + q.step[a] * k)
             new_tn.append(dr.select(k > 0, q.t_next[a] + Float(k) * q.dt[a], q.t_next[a]))
         found = Bool(occupied)

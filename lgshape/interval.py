@@ -11,6 +11,9 @@ log of an interval reaching below 0, give infinite bounds. A NaN bound (from
 ``inf - inf``, say) is turned into an infinite one in :func:`pad`, so a NaN
 never narrows a result. Infinite inputs are allowed.
 
+Ops whose rule only selects among input bounds (neg, abs, min, max) are
+exact and skip the padding (``Op.exact`` in the op table).
+
 Operands of the rules may be intervals or plain arrays (a degenerate interval,
 e.g. the ray direction); :func:`promote` makes an interval of a plain value.
 """

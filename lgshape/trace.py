@@ -166,8 +166,10 @@ class Surface:
         import drjit as dr
         if not dr.is_array_v(o):
             from drjit.llvm.ad import Array3f
-            o, d = (np.ascontiguousarray(np.asarray(v, dtype=np.float32).reshape(-1, 3)) for v in (o, d))
-            return Array3f(o.T), Array3f(d.T)
+            o, d = (np.ascontiguousarray(np.asarray(v, dtype=np.float32).reshape(-1, 3).T) for v in (o, d))
+            o, d = Array3f(o), Array3f(d)
+            dr.eval(o, d)
+            return o, d
         return o, d
 
     def gradient(self, p):
@@ -234,7 +236,7 @@ class Surface:
         cell = dr.minimum(dr.minimum(dev.cell[0], dev.cell[1]), dev.cell[2])
         margin = 1e-3 * cell / dlen          # neighbouring segments overlap by this much
         r_min = 1e-6 * diag / dlen           # minimum half width of a search interval
-        tol = Float64(1e-7 * diag / dlen)    # refinement tolerance in t
+        tol = Float64(1e-6 * diag / dlen)    # refinement tolerance in t
         # Values at points of the ray are taken in float64 (as enclosures in
         # the search), so float32 rounding noise never decides a sign.
         o64 = [Float64(o[i]) for i in range(3)]
@@ -300,10 +302,16 @@ class Surface:
             F, g = evaluate([f, ge], {**point64(t_eval), **ray64}, m64)
             busy = mode != DONE
             iters = iters + dr.select(busy, 1, 0)
-            if search_mode == "interval":
-                seg = bounds.segment_interval(ge, o, d, lo, hi, m)
-            elif search_mode == "taylor":
-                seg = bounds.segment_interval(he, o, d, lo, hi, m)
+            if search_mode != "global":
+                # Only searching lanes need it: a real branch skips the work
+                # where a whole SIMD packet is refining.
+                def seg_bounds(lo, hi):
+                    r_ = bounds.segment_interval(ge if search_mode == "interval" else he,
+                                                 o, d, lo, hi, m)
+                    return r_.lo, r_.hi
+                seg = Interval(*dr.if_stmt(args=(lo, hi), cond=searching, true_fn=seg_bounds,
+                                           false_fn=lambda lo, hi: (Float(0), Float(0)),
+                                           label="lgshape_bounds"))
             evals = evals + dr.select(busy, 1, 0) + dr.select(searching & (search_mode != "global"), 1, 0)
 
             # ---- Search step: exclude, bracket, split (or tiny) ----
@@ -356,6 +364,7 @@ class Surface:
             r_lo = dr.select(refining & same, t_n, t_lo)
             r_hi = dr.select(refining & ~same, t_n, t_hi)
             t_next = newton(t_n, F, g, r_lo, r_hi)
+            t_next = dr.select(F == 0, t_n, t_next)       # t_n is the root itself
             conv = refining & ((dr.abs(t_next - t_n) < tol) | (r_hi - r_lo < tol) | (F == 0))
 
             # ---- Transitions ----

@@ -72,6 +72,8 @@ def evaluate_interval(roots, env: dict, m):
                 r = iv.i_scale(m, args[1], args[0])
             else:
                 r = op.interval(m, *[iv.promote(m, a) for a in args], *extra)
-            memo[id(n)] = iv.pad(m, r, op.transcendental)
+            # Exact rules (neg, abs, min, max...) select among their inputs'
+            # bounds: nothing to round, no NaN to create.
+            memo[id(n)] = r if op.exact else iv.pad(m, r, op.transcendental)
     out = [iv.promote(m, memo[id(r)]) for r in roots]
     return out[0] if single else out

@@ -31,8 +31,9 @@ class Op:
     value: Callable           # value(m, *args[, param])
     deriv: Callable           # deriv(node, args, dargs) -> Expr
     interval: Callable        # interval(m, *intervals[, param]) -> Interval
-    transcendental: bool = False  # absolute error: padded by eps as well
+    transcendental: bool = False  # absolute error: padded by eps_t as well
     public: bool = True       # callable by name in the expression language
+    exact: bool = False       # the interval rule's bounds are exact (no rounding, no NaN)
 
 
 def _d_div(e, args, d):
@@ -51,7 +52,7 @@ _TABLE = [
     Op("mul", 2, lambda m, a, b: a * b,
        lambda e, a, d: N.add(N.mul(d[0], a[1]), N.mul(a[0], d[1])), iv.i_mul),
     Op("div", 2, lambda m, a, b: a / b, _d_div, iv.i_div),
-    Op("neg", 1, lambda m, a: -a, lambda e, a, d: N.neg(d[0]), iv.i_neg),
+    Op("neg", 1, lambda m, a: -a, lambda e, a, d: N.neg(d[0]), iv.i_neg, exact=True),
     Op("pow", 1, lambda m, a, n: powi(a, n), _d_pow, iv.i_pow),
     Op("sqrt", 1, lambda m, a: m.sqrt(a),
        lambda e, a, d: N.div(d[0], N.mul(2.0, e)), iv.i_sqrt, transcendental=True),
@@ -64,16 +65,16 @@ _TABLE = [
     Op("cos", 1, lambda m, a: m.cos(a), lambda e, a, d: N.neg(N.mul(N.sin(a[0]), d[0])),
        iv.i_cos, transcendental=True),
     Op("abs", 1, lambda m, a: m.abs(a),
-       lambda e, a, d: N.mul(N.sub(N.mul(2.0, N.step(a[0])), 1.0), d[0]), iv.i_abs),
+       lambda e, a, d: N.mul(N.sub(N.mul(2.0, N.step(a[0])), 1.0), d[0]), iv.i_abs, exact=True),
     Op("min", 2, lambda m, a, b: m.minimum(a, b),
        lambda e, a, d: N.add(d[1], N.mul(N.step(N.sub(a[1], a[0])), N.sub(d[0], d[1]))),
-       iv.i_min),
+       iv.i_min, exact=True),
     Op("max", 2, lambda m, a, b: m.maximum(a, b),
        lambda e, a, d: N.add(d[1], N.mul(N.step(N.sub(a[0], a[1])), N.sub(d[0], d[1]))),
-       iv.i_max),
+       iv.i_max, exact=True),
     Op("step", 1, lambda m, a: m.select(a > 0, 1.0, 0.0) + 0.0 * a,
-       lambda e, a, d: N.kink(a[0]), iv.i_step, public=False),
-    Op("kink", 1, lambda m, a: 0.0 * a, lambda e, a, d: N.ZERO, iv.i_kink, public=False),
+       lambda e, a, d: N.kink(a[0]), iv.i_step, public=False, exact=True),
+    Op("kink", 1, lambda m, a: 0.0 * a, lambda e, a, d: N.ZERO, iv.i_kink, public=False, exact=True),
 ]
 
 OPS: dict[str, Op] = {op.name: op for op in _TABLE}
