@@ -158,7 +158,8 @@ class Surface:
             dev = gridmod.DeviceGrid(self.grid, Float)
             box = ([dr.opaque(Float, float(v)) for v in self.lo],
                    [dr.opaque(Float, float(v)) for v in self.hi])
-            self._device[key] = (m, dev, None, box, dr.opaque(Float, self.diagonal))
+            self._device[key] = (m, dev, dr.opaque(Float, self.point_error), box,
+                                 dr.opaque(Float, self.diagonal))
         return self._device[key]
 
     @staticmethod
@@ -211,7 +212,7 @@ class Surface:
         UInt32 = dr.uint32_array_t(Float)
         Int32 = dr.int32_array_t(Float)
         Bool = dr.mask_t(Float)
-        (m, m64), dev, _, (blo, bhi), diag = self._kernel_data(Float)
+        (m, m64), dev, point_err, (blo, bhi), diag = self._kernel_data(Float)
         Float64 = m64.Float
         n = max(dr.width(o), dr.width(d))
         f, ge, he = self.expr, self.g_expr, self.h_expr
@@ -257,7 +258,7 @@ class Surface:
         def enclose(v):
             """A float32 enclosure of a float64 point value (see POINT_ERROR)."""
             lo, hi = Float(v), Float(v)
-            pad_abs = float(self.point_error)
+            pad_abs = point_err
             return (lo - (dr.abs(lo) * 2.0**-22 + pad_abs), hi + (dr.abs(hi) * 2.0**-22 + pad_abs))
 
         def interval_of(level, idx, a, b):

@@ -1,0 +1,150 @@
+"""The query API: intersect, occluded, normal, ranges, modes, inputs,
+recompiles.
+
+Oracles: float64 polynomial roots along each ray (torus, degree 4) for the
+ranges and the search modes; central differences for normals; Dr.Jit's
+kernel history for recompiles."""
+import math
+
+import numpy as np
+import pytest
+
+import drjit as dr
+from drjit.llvm.ad import Array3f, Float
+
+import lgshape
+from lgshape.camera import primary_rays
+from lgshape.reference import clip_to_box, polynomial_roots
+
+TORUS = lambda X, Y, Z: (X**2 + Y**2 + Z**2 + 1 - 0.16)**2 - 4 * (X**2 + Y**2)  # noqa: E731
+
+
+@pytest.fixture(scope="module")
+def torus():
+    return lgshape.Surface(lgshape.surfaces.torus())
+
+
+def _rays(rng, n=3000):
+    spec = lgshape.surfaces.torus()
+    lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
+    o = (lo + hi) / 2 + 3.0 * rng.normal(size=(n, 3)) / 1.7
+    d = lo + (hi - lo) * rng.uniform(0, 1, (n, 3)) - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return o.astype(np.float32), d.astype(np.float32), lo, hi
+
+
+def _real_roots(o, d, lo, hi):
+    o, d = o.astype(np.float64), d.astype(np.float64)
+    t0, t1 = clip_to_box(o, d, lo, hi, t_min=-np.inf)
+    r = polynomial_roots(TORUS, 4, o, d, t0, t1)
+    return np.sort(np.where(np.abs(r.imag) < 1e-9, r.real, np.inf), 1)
+
+
+def test01_ranges_find_the_next_roots(torus, rng):
+    """t_min just past the first root gives the second; t_max before the
+    first gives a miss."""
+    o, d, lo, hi = _rays(rng)
+    roots = _real_roots(o, d, lo, hi)
+    first = np.where(roots > 0, roots, np.inf).min(1)
+    t, hit = (np.asarray(v) for v in torus.intersect(o, d))
+    ok = np.isfinite(first)
+    assert np.allclose(t[ok], first[ok], atol=1e-4 * torus.diagonal)
+    assert not hit[~ok].any() and np.all(np.isinf(t[~ok]))
+    # second root, isolated from the first by 1e-3
+    r2 = np.where(roots > first[:, None] + 1e-3, roots, np.inf).min(1)
+    sel = ok & np.isfinite(r2)
+    t2, hit2 = (np.asarray(v) for v in torus.intersect(o[sel], d[sel], t_min=Float(first[sel] + 5e-4)))
+    assert hit2.all() and np.allclose(t2, r2[sel], atol=1e-4 * torus.diagonal)
+    t3, hit3 = torus.intersect(o[ok], d[ok], t_max=Float(first[ok] - 1e-3))
+    assert not np.asarray(hit3).any()
+
+
+def test02_occluded_agrees_with_intersect(torus, rng):
+    o, d, _, _ = _rays(rng)
+    t, hit = (np.asarray(v) for v in torus.intersect(o, d))
+    t_max = rng.uniform(0.5, 6.0, len(o))
+    occ = np.asarray(torus.occluded(o, d, Float(t_max)))
+    clear = np.abs(t - t_max) > 1e-3      # away from the boundary case
+    assert np.array_equal(occ[clear], (hit & (t < t_max))[clear])
+
+
+def test03_normals(torus, rng):
+    o, d, _, _ = _rays(rng)
+    t, hit = (np.asarray(v) for v in torus.intersect(o, d))
+    p = (o + t[:, None] * d)[hit].astype(np.float64)
+    n = np.asarray(torus.normal(p.astype(np.float32))).T
+    e = 1e-6
+    fd = np.stack([(TORUS(*(p + e * a).T) - TORUS(*(p - e * a).T)) / (2 * e) for a in np.eye(3)], 1)
+    fd /= np.linalg.norm(fd, axis=1, keepdims=True)
+    assert np.all(np.einsum("ij,ij->i", n, fd) > 1 - 1e-5)
+    outside = TORUS(*o[hit].astype(np.float64).T) > 0
+    assert np.all(np.einsum("ij,ij->i", n, d[hit])[outside] < 0)   # entering from outside
+    assert np.all(np.einsum("ij,ij->i", n, d[hit])[~outside] > 0)  # leaving from inside
+
+
+@pytest.mark.parametrize("search", ["taylor", "global"])
+def test04_other_search_modes_match_roots(search, rng):
+    """The seed's tests (local and global G) find the same nearest roots."""
+    surf = lgshape.Surface(lgshape.surfaces.torus(), search=search)
+    o, d, lo, hi = _rays(rng, 2000)
+    roots = _real_roots(o, d, lo, hi)
+    first = np.where(roots > 0, roots, np.inf).min(1)
+    r = surf.trace(o, d)
+    t = np.asarray(r.t)
+    assert not np.asarray(r.capped).any()
+    ok = np.isfinite(first)
+    assert np.allclose(t[ok], first[ok], atol=1e-4 * surf.diagonal)
+    assert np.all(np.isinf(t[~ok]))
+
+
+def test05_hand_given_constants(rng):
+    """The seed's mode: hand-given L (global pruning) and G; a G that is too
+    small is the user's responsibility, a valid one gives the same roots."""
+    spec = lgshape.surfaces.torus()
+    auto = lgshape.Surface(spec)
+    L = float(lgshape.bounds.lipschitz(spec.expr, auto.lo[None], auto.hi[None])[0])
+    hand = lgshape.Surface(spec, L=L, G=auto.global_G())
+    assert hand.search == "global"
+    o, d, _, _ = _rays(rng, 1000)
+    assert np.allclose(np.asarray(hand.intersect(o, d)[0]), np.asarray(auto.intersect(o, d)[0]),
+                       atol=1e-4 * auto.diagonal, equal_nan=True)
+    with pytest.raises(ValueError, match="L must be"):
+        lgshape.Surface(spec, L=-1.0)
+
+
+def test06_inputs_and_outputs():
+    surf = lgshape.Surface("x^2 + y^2 + z^2 - 1", bbox=((-1.5,) * 3, (1.5,) * 3))
+    o_np = np.array([[0, 0, -3], [0, 3, 3]], np.float32)
+    d_np = np.array([[0, 0, 1], [1, 0, 0]], np.float32)
+    t_np, hit_np = surf.intersect(o_np, d_np)
+    t_dr, hit_dr = surf.intersect(Array3f(o_np.T), Array3f(d_np.T))
+    assert np.array_equal(np.asarray(t_np), np.asarray(t_dr))
+    assert np.asarray(t_np)[0] == pytest.approx(2.0, abs=1e-5)
+    assert math.isinf(np.asarray(t_np)[1]) and not np.asarray(hit_np)[1]
+    with pytest.raises(ValueError, match="bbox"):
+        lgshape.Surface("x + y")
+    with pytest.raises(lgshape.ParseError, match="position"):
+        lgshape.Surface("x + * y", bbox=((0,) * 3, (1,) * 3))
+    with pytest.raises(ValueError, match="search mode"):
+        lgshape.Surface(lgshape.surfaces.sphere(), search="fast")
+
+
+def test07_no_recompile_for_new_values():
+    """Calling a Surface twice, or another Surface of the same expression
+    shape with other constants, reuses the compiled kernel."""
+    o, d = primary_rays(lgshape.surfaces.tangle().bbox, 32)
+    o, d = Array3f(o.T), Array3f(d.T)
+    dr.eval(o, d)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    hashes = []
+    try:
+        for c in (11.8, 11.8, 10.5):
+            surf = lgshape.Surface(lgshape.surfaces.tangle(c))
+            dr.kernel_history()
+            r = surf.trace(o, d)
+            dr.eval(r.t, r.hit, r.evals, r.capped)
+            dr.sync_thread()
+            hashes.append([k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT])
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert hashes[0] == hashes[1] == hashes[2]
