@@ -282,7 +282,7 @@ class Surface:
         SEEK, SEARCH, REFINE, TINY_A, TINY_B, DONE = range(6)
         max_it = self.max_iterations
 
-        def body(mode, t_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo,
+        def body(mode, t_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min,
                  t_hit, hit, unres, evals, iters, *dstate):
             # ---- Next occupied cell (DDA, jumping empty bricks) ----
             q = gridmod.DDA.from_state(dstate)
@@ -366,7 +366,10 @@ class Surface:
             r_hi = dr.select(refining & ~same, t_n, t_hi)
             t_next = newton(t_n, F, g, r_lo, r_hi)
             t_next = dr.select(F == 0, t_n, t_next)       # t_n is the root itself
-            conv = refining & ((dr.abs(t_next - t_n) < tol) | (r_hi - r_lo < tol) | (F == 0))
+            # Converged: a step below tol, or |F| / min |g| on the bracket
+            # (a proven distance to the root) below tol.
+            conv = refining & ((dr.abs(t_next - t_n) < tol) | (r_hi - r_lo < tol) | (F == 0)
+                               | (dr.abs(F) < Float64(g_min) * tol))
 
             # ---- Transitions ----
             lv_n, ix_n, seg_done = advance(level, idx)
@@ -379,6 +382,8 @@ class Surface:
             t_hi = dr.select(bracket, Float64(dr.select(left, tm, hi)),
                              dr.select(tiny_check, Float64(hi), dr.select(refining, r_hi, t_hi)))
             s_lo = dr.select(bracket, dr.select(left, s_a, s_m), dr.select(tiny_bracket, s1, s_lo))
+            g_min = dr.select(bracket, dr.minimum(dr.abs(g_lo), dr.abs(g_hi)),
+                              dr.select(tiny_bracket, 0.0, g_min))
             F_a = dr.select(tiny_a, F, F_a)
             t_n = dr.select(bracket, newton(tm64, F, g, t_lo, t_hi),
                   dr.select(tiny_check, t_lo,
@@ -403,7 +408,7 @@ class Surface:
                    dr.select(moving_on, dr.select(seg_done, SEEK, SEARCH),
                    dr.select(tiny_b, SEARCH, mode))))))
             mode = dr.select(iters >= max_it, DONE, mode)
-            return (mode, t_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo,
+            return (mode, t_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min,
                     t_hit, hit, unres, evals, iters, *q.state())
 
         dda = gridmod.DDA(dev, o, d, t_start)
@@ -412,11 +417,11 @@ class Surface:
             return dr.zeros(T, n)
         mode0 = dr.select(active, SEEK, DONE) + z(Int32)
         state = (mode0, Float(t_start), z(Float), z(Float), z(Int32), z(Int32),
-                 z(Float64), z(Float64), z(Float64), z(Float64), z(Int32),
+                 z(Float64), z(Float64), z(Float64), z(Float64), z(Int32), z(Float),
                  dr.full(Float, math.inf, n), z(Bool), z(Bool), z(UInt32), z(UInt32), *dda.state())
         out = dr.while_loop(state=state, cond=lambda mode, *_: mode != DONE, body=body,
                             label="lgshape_search")
-        t_hit, hit, unres, evals, iters = out[11:16]
+        t_hit, hit, unres, evals, iters = out[12:17]
         capped = iters >= max_it
         hit = hit & ~capped
         return RayResult(dr.select(hit, t_hit, math.inf), hit, evals, iters, capped, unres)

@@ -30,7 +30,8 @@ class LGAOVIntegrator(mi.SamplingIntegrator):
        - Comma-separated ``<name>:<type>`` pairs, as for Mitsuba's ``aov``,
          e.g. ``dd.y:depth,nn:sh_normal``. Types: ``depth`` (distance along
          the camera ray, 0 where nothing is hit), ``position`` (world),
-         ``uv``, ``geo_normal``, ``sh_normal``.
+         ``uv``, ``geo_normal``, ``sh_normal`` (the shape's shading normal;
+         normal-mapping BSDFs are not applied).
      * - (Nested plugin)
        - |integrator|
        - Optional: one integrator (e.g. ``lg_path``) whose image fills the

@@ -65,7 +65,7 @@ class LGSurface(mi.Mesh):
          :class:`lgshape.Surface`). By default both are computed.
      * - depth
        - |int|
-       - Pruning depth (2^depth cells per axis). Default: lgshape's.
+       - Pruning depth: 2^depth cells per axis, 2 to 10. (Default: 6)
      * - to_world
        - |transform|
        - Any affine object-to-world transform. The ray search runs in object
@@ -75,8 +75,10 @@ class LGSurface(mi.Mesh):
        - Point the normals towards f < 0. (Default: |false|)
      * - (Nested plugin)
        - |bsdf|
-       - The surface's BSDF (default: ``diffuse``). Area emitters are not
-         supported.
+       - The surface's BSDF (default: ``diffuse``). Mitsuba's BSDFs are
+         one-sided: the front is the side the normal points to. Wrap the BSDF
+         in ``twosided`` for surfaces seen from both sides (open, clipped or
+         periodic ones). Area emitters are not supported.
 
     The surface is rendered by the ``lg_path``, ``lg_direct`` and ``lg_aov``
     integrators; Mitsuba's own integrators do not see it.
@@ -137,8 +139,8 @@ class LGSurface(mi.Mesh):
 
         try:
             self.surface = lgshape.Surface(implicit, bbox=bbox, **hints)
-        except lgshape.ParseError as err:
-            raise ValueError(f"lgsurface: malformed 'expr': {err}") from None
+        except ValueError as err:
+            raise ValueError(f"lgsurface: {err}") from None
 
         self.matrix = np.array(to_world.matrix, dtype=np.float64)
         self.inverse = np.linalg.inv(self.matrix)
@@ -216,10 +218,9 @@ class LGSurface(mi.Mesh):
         return self.surface.intersect(o, d, t_min, ray.maxt, active)
 
     def occluded(self, ray: mi.Ray3f, active=True):
-        """Is there a hit in (ε, ray.maxt)?"""
+        """Is there any hit in (ε, ray.maxt]? (Stops at the first one found.)"""
         o, d, t_min = self._object_ray(ray)
-        t, hit = self.surface.intersect(o, d, t_min, ray.maxt, active)
-        return hit & (t < ray.maxt)
+        return self.surface.occluded(o, d, ray.maxt, active, t_min=t_min)
 
     def _object_ray(self, ray):
         _, Winv, _ = self._matrices()
@@ -257,7 +258,7 @@ class LGSurface(mi.Mesh):
 
 def _read_surface(props):
     """-> (description, expression or Implicit, names of the library parameters)."""
-    has_expr, has_surface = props.has_property("expr"), props.has_property("surface")
+    has_expr, has_surface = "expr" in props, "surface" in props
     if has_expr and has_surface:
         raise ValueError("lgsurface: give either 'expr' or 'surface', not both")
     if has_expr:
@@ -278,12 +279,12 @@ def _read_surface(props):
                if isinstance(p.default, numbers.Real)]
     fixed = [p.name for p in inspect.signature(fn).parameters.values() if p not in numeric]
     for p in fixed:
-        if props.has_property(p):
+        if p in props:
             raise ValueError(f"lgsurface: parameter '{p}' of surface '{name}' cannot be "
                              "set from a scene; use the Python API")
     kwargs = {}
     for p in numeric:
-        if props.has_property(p.name):
+        if p.name in props:
             v = props.get(p.name)
             if not isinstance(v, numbers.Real):
                 raise ValueError(f"lgsurface: parameter '{p.name}' of surface '{name}' "
@@ -294,7 +295,7 @@ def _read_surface(props):
 
 
 def _read_bbox(props, implicit):
-    given = [props.has_property(k) for k in ("bbox_min", "bbox_max")]
+    given = [k in props for k in ("bbox_min", "bbox_max")]
     if all(given):
         lo, hi = (tuple(float(v) for v in props.get(k)) for k in ("bbox_min", "bbox_max"))
         if not all(a < b for a, b in zip(lo, hi)):
@@ -311,7 +312,7 @@ def _read_bbox(props, implicit):
 
 
 def _positive(props, name):
-    if not props.has_property(name):
+    if name not in props:
         return None
     v = props.get(name)
     if not isinstance(v, numbers.Real) or not (math.isfinite(v) and v > 0):
@@ -320,11 +321,11 @@ def _positive(props, name):
 
 
 def _depth(props):
-    if not props.has_property("depth"):
+    if "depth" not in props:
         return None
     v = props.get("depth")
-    if not isinstance(v, numbers.Real) or v != int(v) or not 0 <= v <= 12:
-        raise ValueError(f"lgsurface: 'depth' must be an integer in 0..12, got {v!r}")
+    if not isinstance(v, numbers.Real) or v != int(v) or v < 0:
+        raise ValueError(f"lgsurface: 'depth' must be a non-negative integer, got {v!r}")
     return int(v)
 
 
