@@ -16,8 +16,9 @@ Storage is a brick map: a dense top grid of (R/4)^3 brick indices and, per
 occupied brick only, 4^3 = 64 occupancy bits (two uint32). The bricks grow
 with the surface, not with the volume.
 
-Traversal (Dr.Jit, any backend): an Amanatides-Woo DDA over the fine cells
-that jumps over empty bricks in one step (:func:`dda_next_occupied`).
+Traversal (Dr.Jit, any backend): a DDA over the fine cells that crosses
+empty space in large steps, using each empty brick's distance to the
+nearest occupied one (:func:`next_occupied`).
 """
 from __future__ import annotations
 
@@ -130,109 +131,102 @@ def _brick_map(lo, hi, depth, cells, tested) -> PruningGrid:
 
 class DeviceGrid:
     """The brick map as Dr.Jit arrays of one backend, with opaque scalars so
-    that another grid of the same depth reuses the compiled kernels."""
+    that another grid of the same depth reuses the compiled kernels. The top
+    grid holds brick index + 1 for occupied bricks and -k for empty ones,
+    where k is the chessboard distance (in bricks, at most MAX_SKIP) to the
+    nearest occupied brick: the (2k - 1)^3 bricks around an empty one are all
+    empty, so a ray crosses them in one step."""
 
     def __init__(self, grid: PruningGrid, Float):
         import drjit as dr
+        Int32 = dr.int32_array_t(Float)
         UInt32 = dr.uint32_array_t(Float)
         self.R = grid.resolution
-        self.top = UInt32(grid.top)
+        self.top = Int32(_with_distances(grid.top, grid.resolution // BRICK))
         self.bricks = UInt32(grid.bricks) if len(grid.bricks) else dr.zeros(UInt32, 2)
         self.lo = [dr.opaque(Float, float(v)) for v in grid.lo]
         self.cell = [dr.opaque(Float, float(v)) for v in grid.cell_size]
 
 
-class DDA:
-    """Per-ray traversal state: current cell, crossing times, steps."""
-
-    def __init__(self, g: DeviceGrid, o, d, t):
-        import drjit as dr
-        Float = type(t)
-        Int32 = dr.int32_array_t(Float)
-        self.i, self.t_next, self.dt, self.step = [], [], [], []
-        for a in range(3):
-            p = (o[a] + t * d[a] - g.lo[a]) / g.cell[a]
-            i = dr.clip(Int32(dr.floor(p)), 0, g.R - 1)
-            pos = d[a] > 0
-            bound = g.lo[a] + Float(i + dr.select(pos, 1, 0)) * g.cell[a]
-            flat = d[a] == 0
-            self.i.append(i)
-            self.step.append(dr.select(pos, Int32(1), Int32(-1)))
-            self.t_next.append(dr.select(flat, dr.inf, (bound - o[a]) / d[a]))
-            self.dt.append(dr.select(flat, dr.inf, g.cell[a] / dr.abs(d[a])))
-
-    # Loop state for dr.while_loop: a flat tuple of arrays.
-    def state(self):
-        return (*self.i, *self.t_next, *self.dt, *self.step)
-
-    @classmethod
-    def from_state(cls, s):
-        obj = cls.__new__(cls)
-        obj.i, obj.t_next, obj.dt, obj.step = list(s[0:3]), list(s[3:6]), list(s[6:9]), list(s[9:12])
-        return obj
+MAX_SKIP = 8
 
 
-def dda_next_occupied(g: DeviceGrid, dda: DDA, t_cur, t_end, active):
-    """Advance ``dda`` from the cell it is in to the first occupied cell
-    (inclusive), jumping over empty bricks. Returns (found, t_enter, t_exit,
-    dda after that cell, t after that cell). Lanes that leave the grid or pass
-    t_end return found = False."""
+def _with_distances(top: np.ndarray, nb: int) -> np.ndarray:
+    """Top grid with -(chessboard distance to the nearest occupied brick) in
+    empty bricks (capped at MAX_SKIP)."""
+    occ = (top > 0).reshape(nb, nb, nb)
+    dist = np.full(occ.shape, MAX_SKIP, np.int32)
+    dist[occ] = 0
+    reach = occ
+    for k in range(1, MAX_SKIP):
+        grown = _dilate26(reach)
+        dist[grown & ~reach] = k
+        reach = grown
+    out = top.astype(np.int64).copy()
+    empty = out == 0
+    out[empty] = -dist.reshape(-1)[empty]
+    return out.astype(np.int32)
+
+
+def _dilate26(m: np.ndarray) -> np.ndarray:
+    out = m.copy()
+    for axis in range(3):
+        shifted = np.zeros_like(out)
+        sl_a = [slice(None)] * 3
+        sl_b = [slice(None)] * 3
+        sl_a[axis], sl_b[axis] = slice(1, None), slice(None, -1)
+        shifted[tuple(sl_a)] |= out[tuple(sl_b)]
+        shifted[tuple(sl_b)] |= out[tuple(sl_a)]
+        out = out | shifted
+    return out
+
+
+def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
+    """From parameter t along o + t d, find the first occupied fine cell.
+
+    A stateless DDA: each step locates the cell at t (nudged forward), and
+    moves t to the exit of that cell, or of the cube of empty bricks around
+    it. Returns (found, t_enter, t_exit) of that cell; lanes that pass t_end
+    return found = False (the caller clips [t, t_end] to the box, so points
+    just outside it by rounding belong to the boundary cells)."""
     import drjit as dr
-    Float = type(t_cur)
+    Float = type(t)
     Int32 = dr.int32_array_t(Float)
     UInt32 = dr.uint32_array_t(Float)
     Bool = dr.mask_t(Float)
-    B = BRICK
-    nb = g.R // B
+    B, nb, R = BRICK, g.R // BRICK, g.R
+    cell_min = dr.minimum(dr.minimum(g.cell[0], g.cell[1]), g.cell[2])
+    nudge = 1e-5 * cell_min / dr.norm(d)       # forward progress across faces
 
-    def cond(found, t_enter, t_exit, t, active, *s):
-        return active
-
-    def body(found, t_enter, t_exit, t, active, *s):
-        q = DDA.from_state(s)
-        ix, iy, iz = q.i
-        inside = (ix >= 0) & (ix < g.R) & (iy >= 0) & (iy < g.R) & (iz >= 0) & (iz < g.R) & (t <= t_end)
-        active = active & inside
-        b = UInt32(((iz >> 2) * nb + (iy >> 2)) * nb + (ix >> 2))
-        slot = dr.gather(UInt32, g.top, b, active)
-        has_brick = active & (slot > 0)
-        bit = UInt32((ix & 3) + B * ((iy & 3) + B * (iz & 3)))
-        word = dr.gather(UInt32, g.bricks, 2 * (slot - 1) + (bit >> 5), has_brick)
-        occupied = has_brick & (((word >> (bit & 31)) & 1) == 1)
-
-        # Next boundary crossing of this cell (one fine step).
-        t_exit_cell = dr.minimum(dr.minimum(q.t_next[0], q.t_next[1]), q.t_next[2])
-        # Exit of the whole (empty) brick: cells left to its far face per axis.
-        n = [dr.select(q.step[a] > 0, B - (q.i[a] & 3), (q.i[a] & 3) + 1) for a in range(3)]
-        t_face = [dr.select(dr.isfinite(q.dt[a]), q.t_next[a] + Float(n[a] - 1) * q.dt[a], dr.inf)
-                  for a in range(3)]
-        t_brick = dr.minimum(dr.minimum(t_face[0], t_face[1]), t_face[2])
-        skip = active & ~has_brick
-        t_stop = dr.select(skip, t_brick, t_exit_cell)
-        new_i, new_tn = [], []
+    def body(t, active, found, t_exit):
+        tp = t + dr.maximum(nudge, dr.abs(t) * 2.0**-20)   # progress even where ulp(t) > nudge
+        i, inside = [], Bool(active) & (t <= t_end)
         for a in range(3):
-            crosses = q.t_next[a] <= t_stop
-            k_one = dr.select(crosses, 1, 0)
-            frac = dr.floor((t_stop - q.t_next[a]) / q.dt[a]) + 1
-            k_many = dr.select(~crosses, 0,
-                               dr.select(t_face[a] <= t_stop, n[a],
-                                         dr.clip(Int32(dr.select(dr.isfinite(frac), frac, 1)), 1, n[a] - 1)))
-            k = Int32(dr.select(skip, k_many, k_one))
-            k = dr.select(active, k, 0)
-            new_i.append(q.i[a] + q.step[a] * k)
-            new_tn.append(dr.select(k > 0, q.t_next[a] + Float(k) * q.dt[a], q.t_next[a]))
-        found = Bool(occupied)
-        t_enter = dr.select(occupied, t, t_enter)
-        t_exit = dr.select(occupied, t_exit_cell, t_exit)
-        t = dr.select(active, t_stop, t)
-        q.i, q.t_next = new_i, new_tn
-        active = active & ~occupied
-        return (found, t_enter, t_exit, t, active, *q.state())
+            p = (o[a] + tp * d[a] - g.lo[a]) / g.cell[a]
+            i.append(dr.clip(Int32(dr.floor(p)), 0, R - 1))
+        b = UInt32(((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2))
+        v = dr.gather(Int32, g.top, b, inside)
+        brick = inside & (v > 0)
+        bit = UInt32((i[0] & 3) + B * ((i[1] & 3) + B * (i[2] & 3)))
+        word = dr.gather(UInt32, g.bricks, UInt32(2 * (v - 1)) + (bit >> 5), brick)
+        hit = brick & (((word >> (bit & 31)) & 1) == 1)
+        # Exit of the cell (occupied brick) or of the empty cube of bricks.
+        k = dr.select(brick, 0, dr.maximum(-v, 1))
+        t_out = Float(dr.inf)
+        for a in range(3):
+            lo_c = dr.select(brick, i[a], ((i[a] >> 2) - (k - 1)) * B)
+            hi_c = dr.select(brick, i[a] + 1, ((i[a] >> 2) + k) * B)
+            face = g.lo[a] + Float(dr.select(d[a] > 0, hi_c, lo_c)) * g.cell[a]
+            t_a = dr.select(d[a] == 0, dr.inf, (face - o[a]) / d[a])
+            t_out = dr.minimum(t_out, t_a)
+        t_out = dr.maximum(t_out, tp)        # rounding must never stall a ray
+        found = found | hit
+        t_exit = dr.select(hit, t_out, t_exit)
+        t = dr.select(inside & ~hit, t_out, t)
+        return t, inside & ~hit, found, t_exit
 
-    n = dr.width(t_cur)
-    out = dr.while_loop(
-        state=(dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Float, n), Float(t_cur),
-               Bool(active), *dda.state()),
-        cond=cond, body=body, label="lgshape_dda")
-    found, t_enter, t_exit, t, _, *s = out
-    return found, t_enter, t_exit, DDA.from_state(s), t
+    n = dr.width(t)
+    t_in, _, found, t_exit = dr.while_loop(
+        state=(Float(t), Bool(active), dr.zeros(Bool, n), dr.zeros(Float, n)),
+        cond=lambda t, active, *_: active, body=body, label="lgshape_dda")
+    return found, t_in, t_exit

@@ -283,11 +283,11 @@ class Surface:
         max_it = self.max_iterations
 
         def body(mode, t_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min,
-                 t_hit, hit, unres, evals, iters, *dstate):
-            # ---- Next occupied cell (DDA, jumping empty bricks) ----
-            q = gridmod.DDA.from_state(dstate)
+                 t_hit, hit, unres, evals, iters):
+            # ---- Next occupied cell (DDA, jumping over empty space) ----
             seek = mode == SEEK
-            found, ta, tb, q, t_cur = gridmod.dda_next_occupied(dev, q, t_cur, t_end, seek)
+            found, ta, tb = gridmod.next_occupied(dev, o, d, t_cur, t_end, seek)
+            t_cur = dr.select(seek, tb, t_cur)
             a = dr.select(seek, dr.maximum(ta - margin, t_start), a)
             b = dr.select(seek, dr.minimum(tb + margin, t_end), b)
             level = dr.select(seek, 0, level)
@@ -409,16 +409,14 @@ class Surface:
                    dr.select(tiny_b, SEARCH, mode))))))
             mode = dr.select(iters >= max_it, DONE, mode)
             return (mode, t_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min,
-                    t_hit, hit, unres, evals, iters, *q.state())
-
-        dda = gridmod.DDA(dev, o, d, t_start)
+                    t_hit, hit, unres, evals, iters)
 
         def z(T):
             return dr.zeros(T, n)
         mode0 = dr.select(active, SEEK, DONE) + z(Int32)
         state = (mode0, Float(t_start), z(Float), z(Float), z(Int32), z(Int32),
                  z(Float64), z(Float64), z(Float64), z(Float64), z(Int32), z(Float),
-                 dr.full(Float, math.inf, n), z(Bool), z(Bool), z(UInt32), z(UInt32), *dda.state())
+                 dr.full(Float, math.inf, n), z(Bool), z(Bool), z(UInt32), z(UInt32))
         out = dr.while_loop(state=state, cond=lambda mode, *_: mode != DONE, body=body,
                             label="lgshape_search")
         t_hit, hit, unres, evals, iters = out[12:17]

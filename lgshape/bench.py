@@ -1,0 +1,797 @@
+"""The benchmark, ``lgshape bench [--quick] --out DIR``: lgshape against the
+usual ways of rendering an implicit surface, speed against accuracy.
+
+For each library surface, the same primary rays (:mod:`lgshape.camera`, one
+fixed camera per surface) go through every method and setting on the same
+backend (Dr.Jit LLVM, Mitsuba's ``llvm_ad_rgb``):
+
+- ``lgshape``: the guaranteed search with local bounds (search modes
+  ``interval`` and ``taylor``, pruning depths); ``lgshape_global``: the
+  seed's global constants (one G for the box, with and without the global-L
+  pruning);
+- ``sphere_trace`` and ``sphere_trace_relaxed`` (over-relaxation 1.6) with
+  the valid global Lipschitz bound L of interval arithmetic, at several
+  termination thresholds; ``march``: fixed steps with bisection;
+- ``sdfgrid``: Mitsuba's native shape, fed f / |grad f| sampled on a grid
+  over the box (:func:`sample_grid`; it intersects the zero set of the
+  trilinear interpolant of the samples, voxel by voxel);
+- ``mesh``: scikit-image's marching cubes of the same samples as a Mitsuba
+  mesh (smooth vertex normals from its faces), traced by Embree.
+
+Metrics per record: Mrays/s (median of repeats after a warm-up, rays and
+acceleration structure already on the device), function evaluations per ray
+(where the method evaluates f), the memory of the acceleration structure, and
+accuracy against a float64 reference (:func:`lgshape.stability.nearest_root`:
+polynomial roots for algebraic surfaces, a dense scan otherwise): the
+fraction of pixels with a wrong hit or miss, the depth error |t - t_ref| in
+box diagonals over the pixels both hit (mean and max), and the mean angle
+between the method's normal line and the float64 gradient at the reference
+hit (degrees; a NaN normal counts 90). Then the stability suite
+(:mod:`lgshape.stability`) on the same methods.
+
+Writes DIR/results.json, DIR/charts/<surface>.png (error against time per
+ray, one curve per method), DIR/charts/all.png and DIR/BENCHMARKS.md.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from . import stability
+from .camera import primary_rays
+from .surfaces import LIBRARY
+
+VARIANT = "llvm_ad_rgb"
+
+
+@dataclass(frozen=True)
+class Config:
+    res: int                       # primary rays: res x res
+    repeats: int                   # timed runs (after one warm-up)
+    surfaces: tuple
+    depths: tuple                  # lgshape interval-mode pruning depths
+    modes: tuple                   # further lgshape settings at depth 6
+    st_eps: tuple                  # sphere-tracing thresholds, in box diagonals
+    march_steps: tuple             # fixed steps, as divisions of the diagonal
+    grid_res: tuple                # sdfgrid / marching-cubes samples per axis
+    scan_steps: int                # reference scan for non-algebraic surfaces
+    stability_scale: float         # fraction of the stability suite's rays
+    stability_grid: int            # sdfgrid / mesh resolution in the suite
+
+
+FULL = Config(res=256, repeats=5, surfaces=tuple(LIBRARY), depths=(5, 6, 7),
+              modes=("taylor", "global", "seed"), st_eps=(1e-3, 1e-4, 1e-5, 1e-6),
+              march_steps=(64, 256, 1024), grid_res=(32, 64, 128, 256), scan_steps=8192,
+              stability_scale=1.0, stability_grid=128)
+QUICK = Config(res=64, repeats=3, surfaces=tuple(LIBRARY),
+               depths=(6,), modes=("seed",), st_eps=(1e-3, 1e-5), march_steps=(64, 256),
+               grid_res=(32, 64), scan_steps=2048, stability_scale=0.5, stability_grid=64)
+
+#: The lgshape setting the headline compares (the library's default).
+DEFAULT_LG = "interval, depth 6"
+
+
+# ---- Methods ------------------------------------------------------------------
+
+@dataclass
+class Runner:
+    """One method at one setting, ready to trace prepared rays."""
+    method: str
+    setting: str
+    run: Callable[[], tuple]                # traces; returns Dr.Jit arrays
+    read: Callable[[tuple], dict]           # -> numpy t, hit, evals, capped
+    normals: Callable[[np.ndarray], np.ndarray]   # normals at hit rays
+    memory_bytes: int
+    build_s: float
+    extra: dict = field(default_factory=dict)
+
+
+class Rays:
+    """The rays of one run, in the forms the methods take (evaluated once,
+    so no timed call recompiles or uploads them)."""
+
+    def __init__(self, o, d, t_min=0.0):
+        import drjit as dr
+        import mitsuba as mi
+        from drjit.llvm.ad import Array3f
+        self.o, self.d, self.t_min = np.asarray(o, np.float32), np.asarray(d, np.float32), t_min
+        self.o_dr, self.d_dr = Array3f(self.o.T.copy()), Array3f(self.d.T.copy())
+        # Mitsuba's rays have no t_min: start them t_min further along.
+        o_off = (self.o + np.float32(t_min) * self.d).astype(np.float32)
+        self.ray = mi.Ray3f(mi.Point3f(o_off.T.copy()), mi.Vector3f(self.d.T.copy()))
+        dr.eval(self.o_dr, self.d_dr, self.ray)
+
+    def points(self, t, idx):
+        return self.o[idx].astype(np.float64) + t[idx, None] * self.d[idx].astype(np.float64)
+
+
+def _read_ray_result(out):
+    t, hit, evals, capped = (np.asarray(v) for v in out)
+    return {"t": t.astype(np.float64), "hit": hit.astype(bool),
+            "evals": evals.astype(np.float64), "capped": capped.astype(bool)}
+
+
+def _f_normals(surf, rays):
+    def normals(t):
+        out = np.full((len(t), 3), np.nan)
+        idx = np.flatnonzero(np.isfinite(t))
+        if len(idx):
+            out[idx] = np.asarray(surf.normal(rays.points(t, idx).astype(np.float32))).T
+        return out
+    return normals
+
+
+def lgshape_runner(spec, rays, mode, depth):
+    """``mode``: a search mode, or ``"seed"`` (global L pruning and global G)."""
+    import lgshape
+    from . import bounds
+    t0 = time.perf_counter()
+    if mode == "seed":
+        lo, hi = (np.asarray(v, np.float64)[None] for v in spec.bbox)
+        L = float(bounds.lipschitz(spec.expr, lo, hi)[0])
+        surf = lgshape.Surface(spec, L=L, search="global", depth=depth)
+        method, setting = "lgshape_global", f"global L and G, depth {depth}"
+    else:
+        surf = lgshape.Surface(spec, search=mode, depth=depth)
+        method = "lgshape_global" if mode == "global" else "lgshape"
+        setting = f"{'global G' if mode == 'global' else mode}, depth {depth}"
+    build = time.perf_counter() - t0
+
+    def run():
+        r = surf.trace(rays.o_dr, rays.d_dr, t_min=rays.t_min)
+        return r.t, r.hit, r.evals, r.capped
+    return Runner(method, setting, run, _read_ray_result, _f_normals(surf, rays),
+                  int(surf.memory_bytes), build)
+
+
+def _plain_surface(spec):
+    """A Surface as the baselines' view of f, its box and its rays (they use
+    no pruning grid; the coarsest one keeps the build negligible)."""
+    import lgshape
+    return lgshape.Surface(spec, depth=2)
+
+
+def global_L(spec) -> float:
+    from . import bounds
+    lo, hi = (np.asarray(v, np.float64)[None] for v in spec.bbox)
+    return float(bounds.lipschitz(spec.expr, lo, hi)[0])
+
+
+def sphere_runner(spec, rays, eps, relax):
+    from . import baselines
+    t0 = time.perf_counter()
+    surf = _plain_surface(spec)
+    L = global_L(spec)
+    build = time.perf_counter() - t0
+    eps_t = eps * surf.diagonal
+
+    def run():
+        r = baselines.sphere_trace(surf, rays.o_dr, rays.d_dr, L, relax=relax, eps=eps_t,
+                                   t_min=rays.t_min)
+        return r.t, r.hit, r.evals, r.capped
+    method = "sphere_trace" if relax == 1.0 else "sphere_trace_relaxed"
+    return Runner(method, f"eps {eps:g} diag", run, _read_ray_result, _f_normals(surf, rays),
+                  0, build, {"lipschitz_L": L, "relax": relax})
+
+
+def march_runner(spec, rays, divisions):
+    from . import baselines
+    surf = _plain_surface(spec)
+    step = surf.diagonal / divisions
+
+    def run():
+        r = baselines.march(surf, rays.o_dr, rays.d_dr, step, t_min=rays.t_min)
+        return r.t, r.hit, r.evals, r.capped
+    return Runner("march", f"step diag/{divisions}", run, _read_ray_result,
+                  _f_normals(surf, rays), 0, 0.0)
+
+
+def sample_grid(spec, res):
+    """f / |grad f| (float64; a first-order distance with the signs of f) at
+    res^3 vertices spanning the box, indexed [z, y, x]: what sdfgrid and
+    marching cubes are fed. Dividing by |grad f| keeps every sign, and so the
+    topology the samples see, and halves their depth error against raw f.
+    Where grad f vanishes the divisor is floored at 1e-6 of its maximum."""
+    from .expr import evaluate, gradient
+    lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
+    ax = [np.linspace(lo[i], hi[i], res) for i in range(3)]
+    f, gn = np.empty((res, res, res)), np.empty((res, res, res))
+    exprs = [spec.expr, *gradient(spec.expr)]
+    slab = max(1, 2**17 // (res * res))
+    for k in range(0, res, slab):
+        Z, Y, X = np.meshgrid(ax[2][k:k + slab], ax[1], ax[0], indexing="ij")
+        v = [np.broadcast_to(e, X.shape) for e in evaluate(exprs, {"x": X, "y": Y, "z": Z})]
+        f[k:k + slab] = v[0]
+        gn[k:k + slab] = np.sqrt(v[1]**2 + v[2]**2 + v[3]**2)
+    return f / np.maximum(gn, 1e-6 * gn.max() + 1e-300)
+
+
+class Samples:
+    """The grid samples of one resolution, taken once for sdfgrid and mesh;
+    ``seconds`` (the sampling time) counts in both builds."""
+
+    def __init__(self, spec, res):
+        self.spec, self.res, self._f, self.seconds = spec, res, None, 0.0
+
+    @property
+    def f(self):
+        if self._f is None:
+            t0 = time.perf_counter()
+            self._f = sample_grid(self.spec, self.res)
+            self.seconds = time.perf_counter() - t0
+        return self._f
+
+
+def _mitsuba_runner(method, setting, scene, rays, memory, build, extra=None):
+    import mitsuba as mi
+
+    def run():
+        return (scene.ray_intersect_preliminary(rays.ray).t,)
+
+    def read(out):
+        t = np.asarray(out[0]).astype(np.float64) + rays.t_min
+        return {"t": np.where(np.isfinite(t), t, np.inf), "hit": np.isfinite(t),
+                "evals": None, "capped": None}
+
+    def normals(t):
+        si = scene.ray_intersect(rays.ray)
+        n = np.asarray(si.sh_frame.n).T.astype(np.float64)
+        return np.where(np.isfinite(t)[:, None], n, np.nan)
+    return Runner(method, setting, run, read, normals, memory, build, extra or {})
+
+
+def _empty_runner(method, setting, rays, build, note):
+    """A method left with no geometry (e.g. no sign change on its grid)."""
+    n = len(rays.o)
+
+    def read(out):
+        return {"t": np.full(n, np.inf), "hit": np.zeros(n, bool), "evals": None, "capped": None}
+    return Runner(method, setting, lambda: (), read, lambda t: np.full((n, 3), np.nan), 0, build,
+                  {"note": note})
+
+
+def _transform(spec):
+    import mitsuba as mi
+    lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
+    return mi.ScalarTransform4f().translate(lo.tolist()) @ mi.ScalarTransform4f().scale((hi - lo).tolist())
+
+
+def sdfgrid_runner(spec, rays, samples: Samples):
+    import mitsuba as mi
+    f = samples.f
+    t0 = time.perf_counter()
+    setting = f"{samples.res}^3 samples"
+    try:
+        scene = mi.load_dict({"type": "scene", "shape": {
+            "type": "sdfgrid", "grid": mi.TensorXf(f.astype(np.float32)[..., None]),
+            "to_world": _transform(spec)}})
+    except RuntimeError as err:             # no voxel with a sign change
+        return _empty_runner("sdfgrid", setting, rays, samples.seconds, str(err))
+    return _mitsuba_runner("sdfgrid", setting, scene, rays, int(f.size * 4),
+                           samples.seconds + time.perf_counter() - t0)
+
+
+def mesh_runner(spec, rays, samples: Samples):
+    import mitsuba as mi
+    from skimage.measure import marching_cubes
+    f = samples.f
+    t0 = time.perf_counter()
+    lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
+    setting = f"{samples.res}^3 samples"
+    spacing = tuple((hi - lo)[::-1] / (samples.res - 1))
+    try:
+        v, faces, _, _ = marching_cubes(f, 0.0, spacing=spacing)
+    except (ValueError, RuntimeError) as err:       # no sign change in the samples
+        return _empty_runner("mesh", setting, rays, samples.seconds, str(err))
+    v = v[:, ::-1] + lo                              # [z, y, x] -> (x, y, z)
+    mesh = mi.Mesh("marching_cubes", len(v), len(faces), has_vertex_normals=True)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
+    params.update()
+    mesh.recompute_vertex_normals()                   # area-weighted face normals
+    scene = mi.load_dict({"type": "scene", "shape": mesh})
+    memory = 4 * (2 * v.size + faces.size)           # positions, normals, indices
+    return _mitsuba_runner("mesh", setting, scene, rays, int(memory),
+                           samples.seconds + time.perf_counter() - t0,
+                           {"triangles": int(len(faces))})
+
+
+def runners(spec, rays, cfg: Config):
+    """Every method and setting of the primary-ray benchmark, built lazily."""
+    for depth in cfg.depths:
+        yield lambda depth=depth: lgshape_runner(spec, rays, "interval", depth)
+    for mode in cfg.modes:
+        yield lambda mode=mode: lgshape_runner(spec, rays, mode, 6)
+    for relax in (1.0, 1.6):
+        for eps in cfg.st_eps:
+            yield lambda eps=eps, relax=relax: sphere_runner(spec, rays, eps, relax)
+    for n in cfg.march_steps:
+        yield lambda n=n: march_runner(spec, rays, n)
+    for res in cfg.grid_res:
+        samples = Samples(spec, res)
+        yield lambda samples=samples: sdfgrid_runner(spec, rays, samples)
+        yield lambda samples=samples: mesh_runner(spec, rays, samples)
+
+
+def stability_runners(spec, rays, cfg: Config):
+    """The methods of the stability suite: one representative setting each."""
+    samples = Samples(spec, cfg.stability_grid)
+    yield lambda: lgshape_runner(spec, rays, "interval", 6)
+    yield lambda: lgshape_runner(spec, rays, "taylor", 6)
+    yield lambda: lgshape_runner(spec, rays, "seed", 6)
+    yield lambda: sphere_runner(spec, rays, 1e-5, 1.0)
+    yield lambda: sphere_runner(spec, rays, 1e-5, 1.6)
+    yield lambda: march_runner(spec, rays, 256)
+    yield lambda: sdfgrid_runner(spec, rays, samples)
+    yield lambda: mesh_runner(spec, rays, samples)
+
+
+# ---- Measuring ----------------------------------------------------------------
+
+def timed(runner: Runner, repeats: int):
+    """Outputs and the median wall time of ``repeats`` runs after a warm-up
+    (``repeats`` = 0: one run and its time, compilation included)."""
+    import drjit as dr
+    times, out = [], ()
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        out = runner.run()
+        dr.eval(*out)
+        dr.sync_thread()
+        times.append(time.perf_counter() - t0)
+    return runner.read(out), float(np.median(times[1:] or times))
+
+
+def _angle_deg(a, b):
+    """Angle between the lines of unit vectors a and b; NaN counts 90."""
+    c = np.abs(np.sum(a * b, axis=1))
+    return np.where(np.isnan(c), 90.0, np.degrees(np.arccos(np.clip(c, 0.0, 1.0))))
+
+
+def accuracy(res: dict, normals, ref_t, ref_n, diag):
+    hit, ref_hit = res["hit"], np.isfinite(ref_t)
+    both = hit & ref_hit
+    out = {"wrong_hit_fraction": float(np.mean(hit != ref_hit)),
+           "depth_error_mean": None, "depth_error_max": None, "normal_error_deg": None}
+    if both.any():
+        err = np.abs(res["t"][both] - ref_t[both]) / diag
+        out["depth_error_mean"] = float(err.mean())
+        out["depth_error_max"] = float(err.max())
+        ok = both & np.all(np.isfinite(ref_n), axis=1)
+        if ok.any():
+            out["normal_error_deg"] = float(_angle_deg(normals[ok], ref_n[ok]).mean())
+    return out
+
+
+def bench_surface(name, cfg: Config, log):
+    spec = LIBRARY[name]()
+    o, d = primary_rays(spec.bbox, cfg.res)
+    rays = Rays(o, d)
+    diag = float(np.linalg.norm(np.subtract(spec.bbox[1], spec.bbox[0])))
+    t0 = time.perf_counter()
+    degree = stability.DEGREE.get(name)
+    ref_t = stability.nearest_root(spec, o, d, degree=degree, steps=cfg.scan_steps)
+    ref_n = np.full((len(o), 3), np.nan)
+    hit = np.isfinite(ref_t)
+    ref_n[hit] = stability.reference_normal(spec, rays.points(ref_t, np.flatnonzero(hit)))
+    log(f"{name}: reference ({'polynomial roots' if degree else f'{cfg.scan_steps}-step scan'}) "
+        f"in {time.perf_counter() - t0:.1f} s, {hit.mean():.1%} of pixels hit")
+    records = []
+    for make in runners(spec, rays, cfg):
+        runner = make()
+        res, seconds = timed(runner, cfg.repeats)
+        rec = {"surface": name, "method": runner.method, "setting": runner.setting,
+               "mrays_per_s": len(o) / seconds / 1e6,
+               "evals_per_ray": None if res["evals"] is None else float(res["evals"].mean()),
+               "memory_bytes": runner.memory_bytes,
+               **accuracy(res, runner.normals(np.where(res["hit"], res["t"], np.inf)),
+                          ref_t, ref_n, diag),
+               "capped_fraction": None if res["capped"] is None else float(res["capped"].mean()),
+               "rays": len(o), "seconds": seconds, "build_s": runner.build_s, **runner.extra}
+        records.append(rec)
+        log(f"  {rec['method']:21} {rec['setting']:26} {rec['mrays_per_s']:7.2f} Mrays/s  "
+            f"wrong {rec['wrong_hit_fraction']:.4f}  depth {_fmt(rec['depth_error_mean'])}")
+    return records
+
+
+def bench_stability(cfg: Config, log):
+    """Stability records, and a note per case (its description and oracle)."""
+    out, notes = [], []
+    for case in stability.cases(scale=cfg.stability_scale):
+        notes.append({"case": case.name, "description": case.description, "oracle": case.oracle,
+                      "rays": len(case.o), "tangent": int(case.tangent.sum()), "t_min": case.t_min})
+        rays = Rays(case.o, case.d, case.t_min)
+        for make in stability_runners(case.surface, rays, cfg):
+            runner = make()
+            res, _ = timed(runner, 0)
+            t = np.where(res["hit"], res["t"], np.inf)
+            verdict = stability.judge(case, t, res["hit"], runner.normals(t))
+            capped = None if res["capped"] is None else int(res["capped"].sum())
+            out.append({"case": case.name, "method": runner.method, "setting": runner.setting,
+                        "missed": verdict["missed"], "false_hits": verdict["false_hits"],
+                        "capped": capped, "nans": verdict["nans"],
+                        "tangent_excluded": verdict["tangent"], "rays": verdict["rays"],
+                        **{k: v for k, v in runner.extra.items() if k == "lipschitz_L"}})
+        log(f"stability {case.name}: " + ", ".join(
+            f"{r['method']}[{r['setting']}] {r['missed']}/{r['false_hits']}"
+            for r in out if r["case"] == case.name))
+    return out, notes
+
+
+# ---- Charts -----------------------------------------------------------------
+
+FLOOR = 1e-8         # zero errors are drawn here on the log axes
+
+METHOD_STYLE = {"lgshape": ("tab:red", "o"), "lgshape_global": ("tab:orange", "s"),
+                "sphere_trace": ("tab:blue", "^"), "sphere_trace_relaxed": ("tab:cyan", "v"),
+                "march": ("tab:green", "D"), "sdfgrid": ("tab:purple", "P"),
+                "mesh": ("tab:brown", "X")}
+
+
+def _plot_surface(axes, recs, title, legend=True):
+    from matplotlib.ticker import NullFormatter
+    metrics = (("wrong_hit_fraction", "pixels with a wrong hit / miss"),
+               ("depth_error_mean", "mean depth error (box diagonals)"))
+    for ax, (key, label) in zip(axes, metrics):
+        for method, (color, marker) in METHOD_STYLE.items():
+            pts = sorted((1e3 / r["mrays_per_s"], max(r[key], FLOOR) if r[key] is not None else None)
+                         for r in recs if r["method"] == method)
+            pts = [p for p in pts if p[1] is not None]
+            if pts:
+                ax.plot(*zip(*pts), color=color, marker=marker, label=method, lw=1.2, ms=5)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xlabel("time per ray (ns)")
+        ax.set_ylabel(label)
+        ax.axhline(FLOOR, color="0.7", lw=0.6, ls=":")
+        ax.set_title(title, fontsize=9)
+        ax.grid(True, which="major", alpha=0.3)
+    if legend:
+        axes[0].legend(fontsize=7, loc="best")
+
+
+def charts(records, out_dir):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    os.makedirs(os.path.join(out_dir, "charts"), exist_ok=True)
+    written = []
+    surfaces = list(dict.fromkeys(r["surface"] for r in records))
+    for name in surfaces:
+        recs = [r for r in records if r["surface"] == name]
+        fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+        _plot_surface(axes, recs, f"{name}: error against time ({recs[0]['rays']} rays; "
+                      f"0 drawn at {FLOOR:g})")
+        fig.tight_layout()
+        path = os.path.join(out_dir, "charts", f"{name}.png")
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    cols = min(5, len(surfaces))
+    rows = -(-len(surfaces) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 3.0 * rows), squeeze=False)
+    for ax, name in zip(axes.flat, surfaces):
+        recs = [r for r in records if r["surface"] == name]
+        _plot_surface([ax], recs, name, legend=False)
+        ax.set_ylabel("")
+        ax.set_xlabel("ns / ray", fontsize=8)
+    for ax in list(axes.flat)[len(surfaces):]:
+        ax.axis("off")
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=8)
+    fig.suptitle("Pixels with a wrong hit or miss against time per ray (log-log; 0 drawn at "
+                 f"{FLOOR:g})", fontsize=10)
+    fig.tight_layout(rect=(0, 0.05, 1, 0.96))
+    path = os.path.join(out_dir, "charts", "all.png")
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return written + [path]
+
+
+# ---- Headline figures and the report -----------------------------------------------
+
+#: "Equal accuracy" to lgshape: at most this many more pixels wrong (as a
+#: fraction) and a mean depth error of at most EQUAL_DEPTH box diagonals.
+EQUAL_WRONG, EQUAL_DEPTH = 1e-3, 1e-4
+
+#: The sphere tracer the plain speed ratio is taken against.
+PLAIN_SPHERE = ("sphere_trace", "eps 1e-05 diag")
+
+
+def headlines(records):
+    """Per surface: lgshape's default; the plain sphere tracer; the fastest
+    sphere tracer (either variant, any threshold) of equal accuracy; the most
+    accurate sdfgrid and mesh at least as fast as lgshape (the fastest one
+    where none is)."""
+    rows = []
+    for name in dict.fromkeys(r["surface"] for r in records):
+        recs = [r for r in records if r["surface"] == name]
+        lg = next((r for r in recs if r["method"] == "lgshape" and r["setting"] == DEFAULT_LG), None)
+        if lg is None:
+            continue
+        row = {"surface": name, "lgshape": lg}
+        row["sphere"] = next((r for r in recs if (r["method"], r["setting"]) == PLAIN_SPHERE), None)
+        st = [r for r in recs if r["method"].startswith("sphere_trace")
+              and r["wrong_hit_fraction"] <= lg["wrong_hit_fraction"] + EQUAL_WRONG
+              and r["depth_error_mean"] is not None and r["depth_error_mean"] <= EQUAL_DEPTH]
+        row["sphere_equal"] = max(st, key=lambda r: r["mrays_per_s"]) if st else None
+        for method in ("sdfgrid", "mesh"):
+            cand = [r for r in recs if r["method"] == method]
+            fast = [r for r in cand if r["mrays_per_s"] >= lg["mrays_per_s"]]
+            pick = (min(fast, key=lambda r: (r["wrong_hit_fraction"], r["depth_error_mean"] or 0))
+                    if fast else max(cand, key=lambda r: r["mrays_per_s"], default=None))
+            row[method] = pick
+        rows.append(row)
+    return rows
+
+
+def summary(rows) -> list[str]:
+    """The headline sentences, from :func:`headlines`."""
+    out = []
+    ratios = [(h["surface"], h["lgshape"]["mrays_per_s"] and
+               h["sphere"]["mrays_per_s"] / h["lgshape"]["mrays_per_s"]) for h in rows if h["sphere"]]
+    if ratios:
+        lo, hi = min(ratios, key=lambda x: x[1]), max(ratios, key=lambda x: x[1])
+        geo = math.exp(sum(math.log(r) for _, r in ratios) / len(ratios))
+        wrong = [h["sphere"]["wrong_hit_fraction"] for h in rows if h["sphere"]]
+        out.append(f"- Against plain sphere tracing ({PLAIN_SPHERE[1]}), lgshape takes {geo:.2f}x its "
+                   f"time per ray (geometric mean over {len(ratios)} surfaces; from {lo[1]:.2f}x on "
+                   f"{lo[0]} to {hi[1]:.2f}x on {hi[0]}), while sphere tracing gets "
+                   f"{_pct(min(wrong))} to {_pct(max(wrong))} of the pixels wrong and lgshape "
+                   f"{_pct(max(h['lgshape']['wrong_hit_fraction'] for h in rows))} at most.")
+    eq = [h for h in rows if h["sphere_equal"]]
+    names = ", ".join(f"{h['sphere_equal']['mrays_per_s'] / h['lgshape']['mrays_per_s']:.2f}x on "
+                      f"{h['surface']}" for h in eq)
+    out.append(f"- At equal accuracy, some sphere-tracing setting matches lgshape on {len(eq)} of "
+               f"{len(rows)} surfaces" + (f"; there lgshape takes {names} its time." if eq else ".")
+               + " On the others no setting gets there within 1024 steps.")
+    for method in ("sdfgrid", "mesh"):
+        picks = [(h["surface"], h[method]) for h in rows if h[method]]
+        fast = [(n, r) for n, r in picks if r["mrays_per_s"] >= next(
+            h["lgshape"]["mrays_per_s"] for h in rows if h["surface"] == n)]
+        if fast:
+            w = [r["wrong_hit_fraction"] for _, r in fast]
+            dm = [r["depth_error_mean"] for _, r in fast if r["depth_error_mean"] is not None]
+            lgd = max(h["lgshape"]["depth_error_mean"] or 0 for h in rows)
+            out.append(f"- {method} at equal time (the most accurate resolution at least as fast "
+                       f"as lgshape, on {len(fast)} of {len(rows)} surfaces): {_pct(min(w))} to "
+                       f"{_pct(max(w))} of the pixels wrong, mean depth error {_fmt(min(dm))} to "
+                       f"{_fmt(max(dm))} diagonals (lgshape: at most {_fmt(lgd)}).")
+    return out
+
+
+def _fmt(v, digits=2):
+    if v is None:
+        return "–"
+    if isinstance(v, int) or (isinstance(v, float) and v.is_integer() and abs(v) < 1e6):
+        return str(int(v))
+    if v == 0:
+        return "0"
+    return f"{v:.{digits}e}" if abs(v) < 1e-2 or abs(v) >= 1e4 else f"{v:.{digits + 1}g}"
+
+
+def _pct(v):
+    return "–" if v is None else f"{100 * v:.2f}%"
+
+
+def _kib(b):
+    return "–" if b is None else ("0" if b == 0 else f"{b / 1024:,.0f}")
+
+
+def report(results, command, written) -> str:
+    meta, records, stab = results["meta"], results["records"], results["stability"]
+    L = []
+    L.append("# Benchmarks: speed against accuracy\n")
+    L.append(f"Generated by `{command}` on {meta['date']}; every number below comes from that "
+             "run (its `results.json` holds them all, with the build times).\n")
+    m = meta["machine"]
+    L.append(f"- Machine: {m['cpu']}, {m['nproc']} cores (`nproc`), {m['platform']}; load "
+             f"average at the start {m['loadavg']} (the cores are shared).")
+    L.append(f"- Software: Python {m['python']}, Mitsuba {m['mitsuba']} (`{VARIANT}`), "
+             f"Dr.Jit {m['drjit']}, lgshape at {meta['git']}.")
+    L.append(f"- Rays: {meta['res']} x {meta['res']} primary rays per surface from a fixed camera "
+             f"(`lgshape.camera`); times are the median of {meta['repeats']} runs after a warm-up, "
+             "with the rays and the acceleration structure already built.")
+    L.append("- Accuracy against a float64 reference: polynomial roots for the algebraic "
+             f"surfaces, a {meta['scan_steps']}-step scan with bisection for the others. Depth "
+             "error in box diagonals over the pixels both hit; normal error is the angle between "
+             "normal lines (orientation ignored), mean over those pixels.")
+    L.append("- Memory: the acceleration structure only: lgshape's brick map; sdfgrid's samples "
+             "(float32); the mesh's vertex, normal and index buffers (Embree's BVH and "
+             "sdfgrid's per-voxel boxes, internal to Mitsuba, not included). Sphere tracing "
+             "and marching keep none.\n")
+    L.append("Methods: `lgshape` (the guaranteed search with local interval bounds, modes "
+             "`interval` and `taylor`, pruning depth 2^d cells per axis); `lgshape_global` "
+             "(the seed's global constants: one G over the box, and with the seed's global-L "
+             "pruning); `sphere_trace` / `sphere_trace_relaxed` (Hart's sphere tracing with the "
+             "valid global L from interval arithmetic, plain and over-relaxed by 1.6, "
+             "terminating at a distance bound eps, 1024 steps at most); `march` (fixed steps, "
+             "24 bisections); `sdfgrid` (Mitsuba's native shape fed f / |grad f| sampled at the "
+             "grid vertices, a first-order distance with the signs of f, which halves the "
+             "depth error of raw f; it intersects the zero set of the trilinear interpolant); "
+             "`mesh` (scikit-image marching cubes of the same samples, with "
+             "area-weighted vertex normals, traced by Embree in Mitsuba).\n")
+
+    L.append("## Headline\n")
+    rows = headlines(records)
+    L += summary(rows)
+    L.append("")
+    L.append(f"lgshape at its default (`{DEFAULT_LG}`) against: plain sphere tracing "
+             f"(`{PLAIN_SPHERE[1]}`); the fastest sphere tracer of equal accuracy (either variant, "
+             f"any threshold, at most {EQUAL_WRONG:.1%} more wrong pixels and a mean depth error "
+             f"of at most {EQUAL_DEPTH:g} diagonals); the most accurate sdfgrid and mesh at least "
+             "as fast as lgshape (the fastest where none is). Ratios are time per ray, lgshape's "
+             "over the other's.\n")
+    L.append("| surface | lgshape Mrays/s, wrong px | sphere tracing: Mrays/s, wrong px, depth err "
+             "| ratio | sphere tracing at equal accuracy | ratio | sdfgrid at equal time: wrong px, "
+             "depth err | mesh at equal time: wrong px, depth err |")
+    L.append("|---|---|---|---|---|---|---|---|")
+    for h in rows:
+        lg, sp, eq = h["lgshape"], h["sphere"], h["sphere_equal"]
+        plain = ("–", "–") if sp is None else (
+            f"{sp['mrays_per_s']:.2f}, {_pct(sp['wrong_hit_fraction'])}, {_fmt(sp['depth_error_mean'])}",
+            f"{sp['mrays_per_s'] / lg['mrays_per_s']:.2f}")
+        equal = ("none", "–") if eq is None else (
+            f"{eq['method']} {eq['setting']}: {eq['mrays_per_s']:.2f} Mrays/s",
+            f"{eq['mrays_per_s'] / lg['mrays_per_s']:.2f}")
+        cells = []
+        for method in ("sdfgrid", "mesh"):
+            r = h[method]
+            cells.append("–" if r is None else
+                         f"{r['setting']} ({r['mrays_per_s']:.2f} Mrays/s): "
+                         f"{_pct(r['wrong_hit_fraction'])}, {_fmt(r['depth_error_mean'])}")
+        L.append(f"| {h['surface']} | {lg['mrays_per_s']:.2f}, {_pct(lg['wrong_hit_fraction'])} | "
+                 f"{plain[0]} | {plain[1]} | {equal[0]} | {equal[1]} | {cells[0]} | {cells[1]} |")
+    L.append("")
+    L.append("![error against time, all surfaces](charts/all.png)\n")
+
+    L.append("## Stability suite\n")
+    L.append("Missed hits / false hits / rays at the iteration cap / NaNs per case and method "
+             "(`–`: the method has no iteration cap). A ray is missed when the reference "
+             f"has a root and the method reports none or one more than "
+             f"{stability.TOLERANCE:g} diagonals beyond it (capped rays with a root count as "
+             "missed too); a false hit is a hit with no root there. Tangent rays (either answer "
+             "is right) are excluded from both counts and listed.\n")
+    keys = list(dict.fromkeys((r["method"], r["setting"]) for r in stab))
+    L.append("| case | rays (tangent) | " + " | ".join(f"{m}<br>{s}" for m, s in keys) + " |")
+    L.append("|---|---|" + "---|" * len(keys))
+    for case in dict.fromkeys(r["case"] for r in stab):
+        rows = {(r["method"], r["setting"]): r for r in stab if r["case"] == case}
+        first = next(iter(rows.values()))
+        cells = []
+        for k in keys:
+            r = rows.get(k)
+            cells.append("" if r is None else
+                         f"{r['missed']} / {r['false_hits']} / {_fmt(r['capped'])} / {r['nans']}")
+        L.append(f"| {case} | {first['rays']} ({first['tangent_excluded']}) | " + " | ".join(cells) + " |")
+    L.append("")
+    for c in results["cases"]:
+        L.append(f"- **{c['case']}** ({c['rays']} rays, {c['tangent']} tangent): "
+                 f"{c['description']}. Oracle: {c['oracle']}.")
+    L.append("")
+
+    L.append("## All records\n")
+    L.append("Depth errors in box diagonals; `–` where a figure has no meaning (no evaluations "
+             "of f, no pixel hit by both).\n")
+    for name in dict.fromkeys(r["surface"] for r in records):
+        L.append(f"### {name}\n")
+        L.append(f"![{name}](charts/{name}.png)\n")
+        L.append("| method | setting | Mrays/s | evals/ray | memory KiB | wrong px | "
+                 "depth err mean | depth err max | normal err ° | capped |")
+        L.append("|---|---|---|---|---|---|---|---|---|---|")
+        for r in (r for r in records if r["surface"] == name):
+            L.append(f"| {r['method']} | {r['setting']} | {r['mrays_per_s']:.2f} | "
+                     f"{_fmt(r['evals_per_ray'], 1)} | {_kib(r['memory_bytes'])} | "
+                     f"{_pct(r['wrong_hit_fraction'])} | {_fmt(r['depth_error_mean'])} | "
+                     f"{_fmt(r['depth_error_max'])} | {_fmt(r['normal_error_deg'])} | "
+                     f"{_pct(r['capped_fraction'])} |")
+        L.append("")
+    return "\n".join(L) + "\n"
+
+
+# ---- Command line ---------------------------------------------------------------
+
+def _machine():
+    import drjit
+    import mitsuba
+    cpu = "unknown"
+    try:
+        with open("/proc/cpuinfo") as fh:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), cpu)
+    except OSError:
+        pass
+    load = os.getloadavg() if hasattr(os, "getloadavg") else ()
+    return {"nproc": os.cpu_count(), "cpu": cpu, "platform": platform.platform(),
+            "python": platform.python_version(), "mitsuba": mitsuba.__version__,
+            "drjit": drjit.__version__, "loadavg": " ".join(f"{v:.2f}" for v in load)}
+
+
+def _git():
+    here = os.path.dirname(os.path.abspath(__file__))
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True,
+                              text=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "."], cwd=here,
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (head + (" with uncommitted changes" if dirty else "")) if head else "unknown"
+
+
+def _parser():
+    p = argparse.ArgumentParser(prog="lgshape bench", description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true",
+                   help="a few minutes: fewer surfaces, rays and settings")
+    p.add_argument("--out", required=True, help="output folder (results.json, charts/, "
+                   "BENCHMARKS.md)")
+    p.add_argument("--surfaces", nargs="+", choices=sorted(LIBRARY), metavar="NAME",
+                   help="only these library surfaces")
+    p.add_argument("--no-stability", dest="stability", action="store_false",
+                   help="skip the stability suite")
+    return p
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = _parser().parse_args(argv)
+    cfg = QUICK if args.quick else FULL
+    surfaces = tuple(args.surfaces) if args.surfaces else cfg.surfaces
+    import mitsuba as mi
+    mi.set_variant(VARIANT)
+    command = "lgshape bench " + " ".join(argv)
+    t_start = time.perf_counter()
+
+    def log(msg):
+        print(f"[{time.perf_counter() - t_start:6.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    meta = {"command": command, "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+            "machine": _machine(), "git": _git(), "quick": bool(args.quick), "res": cfg.res,
+            "repeats": cfg.repeats, "scan_steps": cfg.scan_steps, "variant": VARIANT,
+            "depth_error_unit": "box diagonals", "normal_error_unit": "degrees, between lines",
+            "stability_tolerance": stability.TOLERANCE}
+    records = []
+    for name in surfaces:
+        records += bench_surface(name, cfg, log)
+    stab, notes = bench_stability(cfg, log) if args.stability else ([], [])
+    results = {"meta": meta, "records": records, "stability": stab, "cases": notes}
+    os.makedirs(args.out, exist_ok=True)
+    written = charts(records, args.out)
+    results["meta"]["seconds"] = round(time.perf_counter() - t_start, 1)
+    with open(os.path.join(args.out, "results.json"), "w") as fh:
+        json.dump(_finite(results), fh, indent=1, allow_nan=False)
+    with open(os.path.join(args.out, "BENCHMARKS.md"), "w") as fh:
+        fh.write(report(results, command, written))
+    log(f"wrote {os.path.join(args.out, 'results.json')}, BENCHMARKS.md and {len(written)} charts")
+    return 0
+
+
+def _finite(v):
+    """JSON-ready: numpy scalars as Python numbers, inf and NaN as null."""
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_finite(x) for x in v]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v) if math.isfinite(v) else None
+    return v
+
+
+if __name__ == "__main__":
+    sys.exit(main())
