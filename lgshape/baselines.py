@@ -19,6 +19,7 @@ import math
 
 from .arraymath import DrJitMath
 from .expr import evaluate
+from .grid import clip_to_box
 from .trace import RayResult
 
 
@@ -26,16 +27,8 @@ def _setup(surface, o, d, t_min, t_max):
     import drjit as dr
     o, d = surface._arrays(o, d)
     Float = type(o.x)
-    t0, t1 = Float(-math.inf), Float(math.inf)
-    for a in range(3):
-        inv = 1.0 / d[a]
-        ta, tb = (float(surface.lo[a]) - o[a]) * inv, (float(surface.hi[a]) - o[a]) * inv
-        flat = d[a] == 0
-        inside = (o[a] >= float(surface.lo[a])) & (o[a] <= float(surface.hi[a]))
-        t0 = dr.select(flat, dr.select(inside, t0, math.inf), dr.maximum(t0, dr.minimum(ta, tb)))
-        t1 = dr.select(flat, dr.select(inside, t1, -math.inf), dr.minimum(t1, dr.maximum(ta, tb)))
-    t0 = dr.maximum(t0, Float(t_min))
-    t1 = dr.minimum(t1, Float(t_max))
+    t0, t1 = clip_to_box(o, d, [float(v) for v in surface.lo], [float(v) for v in surface.hi],
+                         t_min, t_max)
     m = DrJitMath(Float)
 
     def F(t):

@@ -181,6 +181,22 @@ def _dilate26(m: np.ndarray) -> np.ndarray:
     return out
 
 
+def clip_to_box(o, d, lo, hi, t_min, t_max):
+    """[t_start, t_end] of o + t d inside the box [lo, hi] and [t_min, t_max]
+    (Dr.Jit arrays; t_start > t_end where the ray misses)."""
+    import drjit as dr
+    Float = type(o[0])
+    t0, t1 = Float(-dr.inf), Float(dr.inf)
+    for a in range(3):
+        inv = 1.0 / d[a]
+        ta, tb = (lo[a] - o[a]) * inv, (hi[a] - o[a]) * inv
+        flat = d[a] == 0
+        inside = (o[a] >= lo[a]) & (o[a] <= hi[a])
+        t0 = dr.select(flat, dr.select(inside, t0, dr.inf), dr.maximum(t0, dr.minimum(ta, tb)))
+        t1 = dr.select(flat, dr.select(inside, t1, -dr.inf), dr.minimum(t1, dr.maximum(ta, tb)))
+    return dr.maximum(t0, Float(t_min)), dr.minimum(t1, Float(t_max))
+
+
 def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
     """From parameter t along o + t d, find the first occupied fine cell.
 

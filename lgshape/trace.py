@@ -220,17 +220,7 @@ class Surface:
         if search_mode == "global":
             G_glob = dr.opaque(Float, self.global_G()) * dr.squared_norm(d)
 
-        # ---- Clip to the bounding box ----
-        t0, t1 = Float(-math.inf), Float(math.inf)
-        for a in range(3):
-            inv = 1.0 / d[a]
-            ta, tb = (blo[a] - o[a]) * inv, (bhi[a] - o[a]) * inv
-            flat = d[a] == 0
-            inside = (o[a] >= blo[a]) & (o[a] <= bhi[a])
-            t0 = dr.select(flat, dr.select(inside, t0, math.inf), dr.maximum(t0, dr.minimum(ta, tb)))
-            t1 = dr.select(flat, dr.select(inside, t1, -math.inf), dr.minimum(t1, dr.maximum(ta, tb)))
-        t_start = dr.maximum(t0, Float(t_min))
-        t_end = dr.minimum(t1, Float(t_max))
+        t_start, t_end = gridmod.clip_to_box(o, d, blo, bhi, t_min, t_max)
         active = (Bool(active) | dr.zeros(Bool, n)) & (t_start <= t_end) & dr.isfinite(t_start)
 
         dlen = dr.norm(d)
