@@ -27,8 +27,10 @@ class LLVMNotFound(RuntimeError):
 
 
 def _version(path: str) -> int:
-    m = re.search(r"(?:LLVM[-.]|llvm-|\.so\.)(\d+)", os.path.basename(path)) or \
-        re.search(r"llvm-(\d+)", path)
+    """LLVM's major version from a path: .../llvm-19/lib/..., libLLVM-15.so,
+    libLLVM.so.23.1 or libLLVM.so.19.1 (-1 if it cannot tell)."""
+    m = re.search(r"/llvm-(\d+)/", path) or re.search(r"LLVM-(\d+)", os.path.basename(path)) \
+        or re.search(r"LLVM\.so\.(\d+)\.\d+", os.path.basename(path))
     return int(m.group(1)) if m else -1
 
 
