@@ -18,10 +18,11 @@ backend (Dr.Jit LLVM, Mitsuba's ``llvm_ad_rgb``):
 - ``mesh``: scikit-image's marching cubes of the same samples as a Mitsuba
   mesh (smooth vertex normals from its faces), traced by Embree.
 
-Metrics per record: Mrays/s (median of repeats after a warm-up, rays and
-acceleration structure already on the device), function evaluations per ray
-(where the method evaluates f), the memory of the acceleration structure, and
-accuracy against a float64 reference (:func:`lgshape.stability.nearest_root`:
+Metrics per record: Mrays/s (the median of timed samples after a warm-up,
+rays and acceleration structure already built, see :func:`timed`), function
+evaluations per ray (where the method evaluates f), the memory of the
+acceleration structure, and, on the same traces (every pixel, or a regular
+subset of them), accuracy against a float64 reference (:func:`lgshape.stability.nearest_root`:
 polynomial roots for algebraic surfaces, a dense scan otherwise): the
 fraction of pixels with a wrong hit or miss, the depth error |t - t_ref| in
 box diagonals over the pixels both hit (mean and max), and the mean angle
@@ -58,6 +59,7 @@ VARIANT = "llvm_ad_rgb"
 @dataclass(frozen=True)
 class Config:
     res: int                       # primary rays: res x res
+    stride: int                    # accuracy on every stride-th row and column
     repeats: int                   # timed runs (after one warm-up)
     surfaces: tuple
     depths: tuple                  # lgshape interval-mode pruning depths
@@ -68,15 +70,17 @@ class Config:
     scan_steps: int                # reference scan for non-algebraic surfaces
     stability_scale: float         # fraction of the stability suite's rays
     stability_grid: int            # sdfgrid / mesh resolution in the suite
+    min_sample: float              # seconds per timing sample (repeated traces)
 
 
-FULL = Config(res=256, repeats=5, surfaces=tuple(LIBRARY), depths=(5, 6, 7),
+FULL = Config(res=512, stride=2, repeats=5, surfaces=tuple(LIBRARY), depths=(5, 6, 7),
               modes=("taylor", "global", "seed"), st_eps=(1e-3, 1e-4, 1e-5, 1e-6),
               march_steps=(64, 256, 1024), grid_res=(32, 64, 128, 256), scan_steps=8192,
-              stability_scale=1.0, stability_grid=128)
-QUICK = Config(res=64, repeats=3, surfaces=tuple(LIBRARY),
+              stability_scale=1.0, stability_grid=128, min_sample=0.1)
+QUICK = Config(res=64, stride=1, repeats=3, surfaces=tuple(LIBRARY),
                depths=(6,), modes=("seed",), st_eps=(1e-3, 1e-5), march_steps=(64, 256),
-               grid_res=(32, 64), scan_steps=2048, stability_scale=0.5, stability_grid=64)
+               grid_res=(32, 64), scan_steps=2048, stability_scale=0.5, stability_grid=64,
+               min_sample=0.02)
 
 #: The lgshape setting the headline compares (the library's default).
 DEFAULT_LG = "interval, depth 6"
@@ -132,15 +136,19 @@ def _f_normals(surf, rays):
     return normals
 
 
+def global_L(spec) -> float:
+    """The valid global Lipschitz bound of f over the box (interval arithmetic)."""
+    from . import bounds
+    lo, hi = (np.asarray(v, np.float64)[None] for v in spec.bbox)
+    return float(bounds.lipschitz(spec.expr, lo, hi)[0])
+
+
 def lgshape_runner(spec, rays, mode, depth):
     """``mode``: a search mode, or ``"seed"`` (global L pruning and global G)."""
     import lgshape
-    from . import bounds
     t0 = time.perf_counter()
     if mode == "seed":
-        lo, hi = (np.asarray(v, np.float64)[None] for v in spec.bbox)
-        L = float(bounds.lipschitz(spec.expr, lo, hi)[0])
-        surf = lgshape.Surface(spec, L=L, search="global", depth=depth)
+        surf = lgshape.Surface(spec, L=global_L(spec), search="global", depth=depth)
         method, setting = "lgshape_global", f"global L and G, depth {depth}"
     else:
         surf = lgshape.Surface(spec, search=mode, depth=depth)
@@ -160,12 +168,6 @@ def _plain_surface(spec):
     no pruning grid; the coarsest one keeps the build negligible)."""
     import lgshape
     return lgshape.Surface(spec, depth=2)
-
-
-def global_L(spec) -> float:
-    from . import bounds
-    lo, hi = (np.asarray(v, np.float64)[None] for v in spec.bbox)
-    return float(bounds.lipschitz(spec.expr, lo, hi)[0])
 
 
 def sphere_runner(spec, rays, eps, relax):
@@ -264,7 +266,8 @@ def _empty_runner(method, setting, rays, build, note):
 def _transform(spec):
     import mitsuba as mi
     lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
-    return mi.ScalarTransform4f().translate(lo.tolist()) @ mi.ScalarTransform4f().scale((hi - lo).tolist())
+    T = mi.ScalarTransform4f()
+    return T.translate(lo.tolist()) @ T.scale((hi - lo).tolist())
 
 
 def sdfgrid_runner(spec, rays, samples: Samples):
@@ -340,18 +343,34 @@ def stability_runners(spec, rays, cfg: Config):
 
 # ---- Measuring ----------------------------------------------------------------
 
-def timed(runner: Runner, repeats: int):
-    """Outputs and the median wall time of ``repeats`` runs after a warm-up
-    (``repeats`` = 0: one run and its time, compilation included)."""
+def timed(runner: Runner, repeats: int, min_sample: float = 0.0):
+    """Outputs and the time of one trace: the median of ``repeats`` samples
+    after a warm-up, each sample running the trace as often as it takes to
+    last ``min_sample`` seconds (so that scheduling jitter on shared cores
+    averages out); 3 samples where one trace takes over a second. ``repeats``
+    = 0: one run, compilation included."""
     import drjit as dr
-    times, out = [], ()
-    for _ in range(repeats + 1):
-        t0 = time.perf_counter()
+
+    def once():
         out = runner.run()
         dr.eval(*out)
         dr.sync_thread()
-        times.append(time.perf_counter() - t0)
-    return runner.read(out), float(np.median(times[1:] or times))
+        return out
+    t0 = time.perf_counter()
+    out = once()
+    if repeats == 0:
+        return runner.read(out), time.perf_counter() - t0
+    t0 = time.perf_counter()
+    once()                                            # calibration, compiled
+    t_one = time.perf_counter() - t0
+    inner = max(1, math.ceil(min_sample / max(t_one, 1e-6)))
+    samples = []
+    for _ in range(min(repeats, 3) if t_one > 1.0 else repeats):
+        t0 = time.perf_counter()
+        for _ in range(inner):
+            out = once()
+        samples.append((time.perf_counter() - t0) / inner)
+    return runner.read(out), float(np.median(samples))
 
 
 def _angle_deg(a, b):
@@ -375,6 +394,12 @@ def accuracy(res: dict, normals, ref_t, ref_n, diag):
     return out
 
 
+def accuracy_subset(res: int, stride: int) -> np.ndarray:
+    """Indices of the pixels (row-major) on every ``stride``-th row and column."""
+    k = np.arange(0, res, stride)
+    return (k[:, None] * res + k[None, :]).ravel()
+
+
 def bench_surface(name, cfg: Config, log):
     spec = LIBRARY[name]()
     o, d = primary_rays(spec.bbox, cfg.res)
@@ -382,24 +407,31 @@ def bench_surface(name, cfg: Config, log):
     diag = float(np.linalg.norm(np.subtract(spec.bbox[1], spec.bbox[0])))
     t0 = time.perf_counter()
     degree = stability.DEGREE.get(name)
-    ref_t = stability.nearest_root(spec, o, d, degree=degree, steps=cfg.scan_steps)
-    ref_n = np.full((len(o), 3), np.nan)
+    sub = accuracy_subset(cfg.res, cfg.stride)
+    ref_t = stability.nearest_root(spec, o[sub], d[sub], degree=degree, steps=cfg.scan_steps)
+    ref_n = np.full((len(sub), 3), np.nan)
     hit = np.isfinite(ref_t)
-    ref_n[hit] = stability.reference_normal(spec, rays.points(ref_t, np.flatnonzero(hit)))
+    o_s, d_s = o[sub][hit].astype(np.float64), d[sub][hit].astype(np.float64)
+    ref_n[hit] = stability.reference_normal(spec, o_s + ref_t[hit, None] * d_s)
     log(f"{name}: reference ({'polynomial roots' if degree else f'{cfg.scan_steps}-step scan'}) "
-        f"in {time.perf_counter() - t0:.1f} s, {hit.mean():.1%} of pixels hit")
+        f"on {len(sub)} rays in {time.perf_counter() - t0:.1f} s, {hit.mean():.1%} of them hit")
     records = []
     for make in runners(spec, rays, cfg):
         runner = make()
-        res, seconds = timed(runner, cfg.repeats)
+        res, seconds = timed(runner, cfg.repeats, cfg.min_sample)
+        # Accuracy on the subset: normals only where it is hit.
+        t_sub = np.full(len(o), np.inf)
+        t_sub[sub] = np.where(res["hit"][sub], res["t"][sub], np.inf)
+        normals = runner.normals(t_sub)[sub]
+        res_sub = {"t": res["t"][sub], "hit": res["hit"][sub]}
         rec = {"surface": name, "method": runner.method, "setting": runner.setting,
                "mrays_per_s": len(o) / seconds / 1e6,
                "evals_per_ray": None if res["evals"] is None else float(res["evals"].mean()),
                "memory_bytes": runner.memory_bytes,
-               **accuracy(res, runner.normals(np.where(res["hit"], res["t"], np.inf)),
-                          ref_t, ref_n, diag),
+               **accuracy(res_sub, normals, ref_t, ref_n, diag),
                "capped_fraction": None if res["capped"] is None else float(res["capped"].mean()),
-               "rays": len(o), "seconds": seconds, "build_s": runner.build_s, **runner.extra}
+               "rays": len(o), "accuracy_rays": len(sub), "seconds": seconds,
+               "build_s": runner.build_s, **runner.extra}
         records.append(rec)
         log(f"  {rec['method']:21} {rec['setting']:26} {rec['mrays_per_s']:7.2f} Mrays/s  "
             f"wrong {rec['wrong_hit_fraction']:.4f}  depth {_fmt(rec['depth_error_mean'])}")
@@ -446,9 +478,8 @@ def _plot_surface(axes, recs, title, legend=True):
                ("depth_error_mean", "mean depth error (box diagonals)"))
     for ax, (key, label) in zip(axes, metrics):
         for method, (color, marker) in METHOD_STYLE.items():
-            pts = sorted((1e3 / r["mrays_per_s"], max(r[key], FLOOR) if r[key] is not None else None)
-                         for r in recs if r["method"] == method)
-            pts = [p for p in pts if p[1] is not None]
+            pts = sorted((1e3 / r["mrays_per_s"], max(r[key], FLOOR))
+                         for r in recs if r["method"] == method and r[key] is not None)
             if pts:
                 ax.plot(*zip(*pts), color=color, marker=marker, label=method, lw=1.2, ms=5)
         ax.set_xscale("log")
@@ -473,8 +504,8 @@ def charts(records, out_dir):
     for name in surfaces:
         recs = [r for r in records if r["surface"] == name]
         fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-        _plot_surface(axes, recs, f"{name}: error against time ({recs[0]['rays']} rays; "
-                      f"0 drawn at {FLOOR:g})")
+        _plot_surface(axes, recs, f"{name}: {recs[0]['rays']} rays timed, "
+                      f"{recs[0]['accuracy_rays']} checked; 0 drawn at {FLOOR:g}")
         fig.tight_layout()
         path = os.path.join(out_dir, "charts", f"{name}.png")
         fig.savefig(path, dpi=110)
@@ -507,6 +538,9 @@ def charts(records, out_dir):
 #: fraction) and a mean depth error of at most EQUAL_DEPTH box diagonals.
 EQUAL_WRONG, EQUAL_DEPTH = 1e-3, 1e-4
 
+#: Depth errors of lgshape above this (box diagonals) are listed in the report.
+LG_DEPTH_TOLERANCE = 1e-5
+
 #: The sphere tracer the plain speed ratio is taken against.
 PLAIN_SPHERE = ("sphere_trace", "eps 1e-05 diag")
 
@@ -519,7 +553,8 @@ def headlines(records):
     rows = []
     for name in dict.fromkeys(r["surface"] for r in records):
         recs = [r for r in records if r["surface"] == name]
-        lg = next((r for r in recs if r["method"] == "lgshape" and r["setting"] == DEFAULT_LG), None)
+        lg = next((r for r in recs if (r["method"], r["setting"]) == ("lgshape", DEFAULT_LG)),
+                  None)
         if lg is None:
             continue
         row = {"surface": name, "lgshape": lg}
@@ -541,17 +576,18 @@ def headlines(records):
 def summary(rows) -> list[str]:
     """The headline sentences, from :func:`headlines`."""
     out = []
-    ratios = [(h["surface"], h["lgshape"]["mrays_per_s"] and
-               h["sphere"]["mrays_per_s"] / h["lgshape"]["mrays_per_s"]) for h in rows if h["sphere"]]
+    ratios = [(h["surface"], h["sphere"]["mrays_per_s"] / h["lgshape"]["mrays_per_s"])
+              for h in rows if h["sphere"]]
     if ratios:
         lo, hi = min(ratios, key=lambda x: x[1]), max(ratios, key=lambda x: x[1])
         geo = math.exp(sum(math.log(r) for _, r in ratios) / len(ratios))
         wrong = [h["sphere"]["wrong_hit_fraction"] for h in rows if h["sphere"]]
-        out.append(f"- Against plain sphere tracing ({PLAIN_SPHERE[1]}), lgshape takes {geo:.2f}x its "
-                   f"time per ray (geometric mean over {len(ratios)} surfaces; from {lo[1]:.2f}x on "
-                   f"{lo[0]} to {hi[1]:.2f}x on {hi[0]}), while sphere tracing gets "
-                   f"{_pct(min(wrong))} to {_pct(max(wrong))} of the pixels wrong and lgshape "
-                   f"{_pct(max(h['lgshape']['wrong_hit_fraction'] for h in rows))} at most.")
+        out.append(f"- Against plain sphere tracing ({PLAIN_SPHERE[1]}), lgshape takes {geo:.2f}x "
+                   f"its time per ray (geometric mean over {len(ratios)} surfaces; from "
+                   f"{lo[1]:.2f}x on {lo[0]} to {hi[1]:.2f}x on {hi[0]}), while sphere "
+                   f"tracing gets {_pct(min(wrong))} to {_pct(max(wrong))} of the pixels wrong "
+                   f"and lgshape {_pct(max(h['lgshape']['wrong_hit_fraction'] for h in rows))} "
+                   "at most.")
     eq = [h for h in rows if h["sphere_equal"]]
     names = ", ".join(f"{h['sphere_equal']['mrays_per_s'] / h['lgshape']['mrays_per_s']:.2f}x on "
                       f"{h['surface']}" for h in eq)
@@ -587,6 +623,10 @@ def _pct(v):
     return "–" if v is None else f"{100 * v:.2f}%"
 
 
+def _evals(v):
+    return "–" if v is None else (f"{v:.1f}" if v < 100 else f"{v:.0f}")
+
+
 def _kib(b):
     return "–" if b is None else ("0" if b == 0 else f"{b / 1024:,.0f}")
 
@@ -603,8 +643,13 @@ def report(results, command, written) -> str:
     L.append(f"- Software: Python {m['python']}, Mitsuba {m['mitsuba']} (`{VARIANT}`), "
              f"Dr.Jit {m['drjit']}, lgshape at {meta['git']}.")
     L.append(f"- Rays: {meta['res']} x {meta['res']} primary rays per surface from a fixed camera "
-             f"(`lgshape.camera`); times are the median of {meta['repeats']} runs after a warm-up, "
-             "with the rays and the acceleration structure already built.")
+             f"(`lgshape.camera`); a time is the median of {meta['repeats']} samples after a "
+             f"warm-up (3 where one trace takes over a second), each sample repeating the trace "
+             f"for at least {meta['min_sample']} s, with the rays and the acceleration structure "
+             "already built. Accuracy is measured on the same traces, "
+             + ("on every pixel." if meta['stride'] == 1 else
+                f"on the pixels whose row and column are multiples of {meta['stride']} "
+                f"({meta['accuracy_rays']} rays)."))
     L.append("- Accuracy against a float64 reference: polynomial roots for the algebraic "
              f"surfaces, a {meta['scan_steps']}-step scan with bisection for the others. Depth "
              "error in box diagonals over the pixels both hit; normal error is the angle between "
@@ -635,14 +680,15 @@ def report(results, command, written) -> str:
              f"of at most {EQUAL_DEPTH:g} diagonals); the most accurate sdfgrid and mesh at least "
              "as fast as lgshape (the fastest where none is). Ratios are time per ray, lgshape's "
              "over the other's.\n")
-    L.append("| surface | lgshape Mrays/s, wrong px | sphere tracing: Mrays/s, wrong px, depth err "
-             "| ratio | sphere tracing at equal accuracy | ratio | sdfgrid at equal time: wrong px, "
-             "depth err | mesh at equal time: wrong px, depth err |")
+    L.append("| surface | lgshape Mrays/s, wrong px | sphere tracing: Mrays/s, wrong px, "
+             "depth err | ratio | sphere tracing at equal accuracy | ratio | sdfgrid at equal "
+             "time: wrong px, depth err | mesh at equal time: wrong px, depth err |")
     L.append("|---|---|---|---|---|---|---|---|")
     for h in rows:
         lg, sp, eq = h["lgshape"], h["sphere"], h["sphere_equal"]
         plain = ("–", "–") if sp is None else (
-            f"{sp['mrays_per_s']:.2f}, {_pct(sp['wrong_hit_fraction'])}, {_fmt(sp['depth_error_mean'])}",
+            f"{sp['mrays_per_s']:.2f}, {_pct(sp['wrong_hit_fraction'])}, "
+            f"{_fmt(sp['depth_error_mean'])}",
             f"{sp['mrays_per_s'] / lg['mrays_per_s']:.2f}")
         equal = ("none", "–") if eq is None else (
             f"{eq['method']} {eq['setting']}: {eq['mrays_per_s']:.2f} Mrays/s",
@@ -650,13 +696,27 @@ def report(results, command, written) -> str:
         cells = []
         for method in ("sdfgrid", "mesh"):
             r = h[method]
+            slower = r is not None and r["mrays_per_s"] < lg["mrays_per_s"]
             cells.append("–" if r is None else
-                         f"{r['setting']} ({r['mrays_per_s']:.2f} Mrays/s): "
+                         ("none as fast; fastest: " if slower else "")
+                         + f"{r['setting']} ({r['mrays_per_s']:.2f} Mrays/s): "
                          f"{_pct(r['wrong_hit_fraction'])}, {_fmt(r['depth_error_mean'])}")
         L.append(f"| {h['surface']} | {lg['mrays_per_s']:.2f}, {_pct(lg['wrong_hit_fraction'])} | "
                  f"{plain[0]} | {plain[1]} | {equal[0]} | {equal[1]} | {cells[0]} | {cells[1]} |")
     L.append("")
     L.append("![error against time, all surfaces](charts/all.png)\n")
+    own = [r for r in records if r["method"].startswith("lgshape")
+           and (r["wrong_hit_fraction"] > 0 or (r["capped_fraction"] or 0) > 0
+                or (r["depth_error_max"] or 0) > LG_DEPTH_TOLERANCE)]
+    L.append("### Where lgshape itself falls short\n")
+    L.append(f"lgshape records with a wrong pixel, a ray at the iteration cap, or a depth error "
+             f"above {LG_DEPTH_TOLERANCE:g} diagonals (its refinement tolerance is 1e-6):"
+             + ("" if own else " none.") + "\n")
+    for r in own:
+        L.append(f"- {r['surface']}, {r['method']} `{r['setting']}`: "
+                 f"{_pct(r['wrong_hit_fraction'])} wrong, {_pct(r['capped_fraction'])} capped, "
+                 f"depth error max {_fmt(r['depth_error_max'])}.")
+    L.append("")
 
     L.append("## Stability suite\n")
     L.append("Missed hits / false hits / rays at the iteration cap / NaNs per case and method "
@@ -676,7 +736,8 @@ def report(results, command, written) -> str:
             r = rows.get(k)
             cells.append("" if r is None else
                          f"{r['missed']} / {r['false_hits']} / {_fmt(r['capped'])} / {r['nans']}")
-        L.append(f"| {case} | {first['rays']} ({first['tangent_excluded']}) | " + " | ".join(cells) + " |")
+        L.append(f"| {case} | {first['rays']} ({first['tangent_excluded']}) | "
+                 + " | ".join(cells) + " |")
     L.append("")
     for c in results["cases"]:
         L.append(f"- **{c['case']}** ({c['rays']} rays, {c['tangent']} tangent): "
@@ -694,7 +755,7 @@ def report(results, command, written) -> str:
         L.append("|---|---|---|---|---|---|---|---|---|---|")
         for r in (r for r in records if r["surface"] == name):
             L.append(f"| {r['method']} | {r['setting']} | {r['mrays_per_s']:.2f} | "
-                     f"{_fmt(r['evals_per_ray'], 1)} | {_kib(r['memory_bytes'])} | "
+                     f"{_evals(r['evals_per_ray'])} | {_kib(r['memory_bytes'])} | "
                      f"{_pct(r['wrong_hit_fraction'])} | {_fmt(r['depth_error_mean'])} | "
                      f"{_fmt(r['depth_error_max'])} | {_fmt(r['normal_error_deg'])} | "
                      f"{_pct(r['capped_fraction'])} |")
@@ -710,7 +771,8 @@ def _machine():
     cpu = "unknown"
     try:
         with open("/proc/cpuinfo") as fh:
-            cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), cpu)
+            cpu = next((ln.split(":", 1)[1].strip() for ln in fh
+                        if ln.startswith("model name")), cpu)
     except OSError:
         pass
     load = os.getloadavg() if hasattr(os, "getloadavg") else ()
@@ -722,19 +784,24 @@ def _machine():
 def _git():
     here = os.path.dirname(os.path.abspath(__file__))
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True,
-                              text=True, timeout=10).stdout.strip()
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here,
+                              capture_output=True, text=True, timeout=10).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--", "."], cwd=here,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+                               capture_output=True, text=True, timeout=10).stdout.split("\n")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
-    return (head + (" with uncommitted changes" if dirty else "")) if head else "unknown"
+    changed = [ln[3:] for ln in dirty if ln.strip()]
+    if not head:
+        return "unknown"
+    return head + (f" (uncommitted: {', '.join(changed)})" if changed else "")
 
 
 def _parser():
-    p = argparse.ArgumentParser(prog="lgshape bench", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        prog="lgshape bench", description="lgshape against sphere tracing, marching, Mitsuba's "
+        "sdfgrid and a marching-cubes mesh: speed against accuracy, and a stability suite.")
     p.add_argument("--quick", action="store_true",
-                   help="a few minutes: fewer surfaces, rays and settings")
+                   help="a smoke run of well under a minute: fewer rays and settings")
     p.add_argument("--out", required=True, help="output folder (results.json, charts/, "
                    "BENCHMARKS.md)")
     p.add_argument("--surfaces", nargs="+", choices=sorted(LIBRARY), metavar="NAME",
@@ -757,9 +824,12 @@ def main(argv=None) -> int:
     def log(msg):
         print(f"[{time.perf_counter() - t_start:6.1f} s] {msg}", file=sys.stderr, flush=True)
 
-    meta = {"command": command, "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+    now = datetime.datetime.now().astimezone()
+    meta = {"command": command, "date": now.isoformat(timespec="seconds"),
             "machine": _machine(), "git": _git(), "quick": bool(args.quick), "res": cfg.res,
-            "repeats": cfg.repeats, "scan_steps": cfg.scan_steps, "variant": VARIANT,
+            "repeats": cfg.repeats, "min_sample": cfg.min_sample, "stride": cfg.stride,
+            "accuracy_rays": len(accuracy_subset(cfg.res, cfg.stride)),
+            "scan_steps": cfg.scan_steps, "variant": VARIANT,
             "depth_error_unit": "box diagonals", "normal_error_unit": "degrees, between lines",
             "stability_tolerance": stability.TOLERANCE}
     records = []

@@ -280,7 +280,8 @@ def steep_wall(rng, n=300, k=1e-3):
     # f = u / sqrt(u^2 + k^2): the sign of u = 0, a wavy wall, but |grad f| up
     # to 1/k = 1000 times |grad u| at the wall while |f| <= 1 everywhere.
     u = "(x - 0.1 + 0.2 * sin(2 * y) * cos(2 * z))"
-    spec = Implicit("steep_wall", parse(f"{u} / sqrt({u}^2 + {k * k!r})"), ((-1.0,) * 3, (1.0,) * 3))
+    spec = Implicit("steep_wall", parse(f"{u} / sqrt({u}^2 + {k * k!r})"),
+                    ((-1.0,) * 3, (1.0,) * 3))
     o = 3.0 * _unit(rng.normal(size=(n, 3)))
     aim = rng.uniform(-1, 1, (n, 3))
     return _make("steep_wall", f"a wavy wall u = 0 as f = u / sqrt(u^2 + k^2), k = {k:g}: "

@@ -288,8 +288,12 @@ class Surface:
             searching = mode == SEARCH
             refining = mode == REFINE
             lo, hi = interval_of(level, idx, a, b)
-            tm, r = 0.5 * (lo + hi), 0.5 * (hi - lo)
-            t_eval = dr.select(searching, Float64(tm), t_n)
+            # [tm - r, tm + r] must cover [lo, hi]: the midpoint in float64
+            # (exact), the half width rounded outward.
+            tm64 = 0.5 * (Float64(lo) + Float64(hi))
+            tm = Float(tm64)
+            r = Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22)
+            t_eval = dr.select(searching, tm64, t_n)
             F, g = evaluate([f, ge], {**point64(t_eval), **ray64}, m64)
             busy = mode != DONE
             iters = iters + dr.select(busy, 1, 0)
@@ -355,21 +359,23 @@ class Surface:
             r_lo = dr.select(refining & same, t_n, t_lo)
             r_hi = dr.select(refining & ~same, t_n, t_hi)
             t_next = newton(t_n, F, g, r_lo, r_hi)
-            t_next = dr.select(F == 0, t_n, t_next)       # t_n is the root itself
-            # Converged: a step below tol, or |F| / min |g| on the bracket
-            # (a proven distance to the root) below tol.
-            conv = refining & ((dr.abs(t_next - t_n) < tol) | (r_hi - r_lo < tol) | (F == 0)
-                               | (dr.abs(F) < Float64(g_min) * tol))
+            # Where |F| / min |g| on the bracket (a proven distance to the root)
+            # is below tol, t_n is within tol already: take its Newton step
+            # kept in the bracket, never the safeguard's bisection midpoint.
+            close = (F == 0) | (dr.abs(F) < Float64(g_min) * tol)
+            t_next = dr.select(F == 0, t_n,                # t_n is the root itself
+                     dr.select(close, dr.clip(t_n - F / g, r_lo, r_hi), t_next))
+            # Converged: that, or a step below tol, or a bracket below tol.
+            conv = refining & (close | (dr.abs(t_next - t_n) < tol) | (r_hi - r_lo < tol))
 
             # ---- Transitions ----
             lv_n, ix_n, seg_done = advance(level, idx)
             moving_on = empty | tiny_none
             level = dr.select(split, level + 1, dr.select(moving_on, lv_n, level))
             idx = dr.select(split, idx << 1, dr.select(moving_on, ix_n, idx))
-            tm64 = Float64(tm)
-            t_lo = dr.select(bracket, Float64(dr.select(left, lo, tm)),
+            t_lo = dr.select(bracket, dr.select(left, Float64(lo), tm64),
                              dr.select(tiny_check, Float64(lo), dr.select(refining, r_lo, t_lo)))
-            t_hi = dr.select(bracket, Float64(dr.select(left, tm, hi)),
+            t_hi = dr.select(bracket, dr.select(left, tm64, Float64(hi)),
                              dr.select(tiny_check, Float64(hi), dr.select(refining, r_hi, t_hi)))
             s_lo = dr.select(bracket, dr.select(left, s_a, s_m), dr.select(tiny_bracket, s1, s_lo))
             g_min = dr.select(bracket, dr.minimum(dr.abs(g_lo), dr.abs(g_hi)),

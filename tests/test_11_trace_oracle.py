@@ -88,11 +88,31 @@ def test01_matches_polynomial_roots(name, rng):
     degree, F = FORMULAS[name]
     spec = lgshape.surfaces.LIBRARY[name]()
     lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
+    _check(lgshape.Surface(spec), F, degree, *_rays(rng, F, degree, lo, hi),
+           groups=np.repeat(["outside", "inside", "grazing"], [N_OUT, N_IN, N_GRAZE]))
+
+
+FORMULAS["sphere"] = (2, lambda X, Y, Z: X**2 + Y**2 + Z**2 - 1)
+
+
+@pytest.mark.parametrize("search,depth", [("interval", 7), ("taylor", 6), ("global", 6)])
+@pytest.mark.parametrize("name", ["chmutov6", "barth_sextic", "sphere"])
+def test02_camera_rays_every_mode(name, search, depth):
+    """256^2 primary rays, each search mode (regressions: a root within one
+    float32 step of a bisection point was skipped in the global mode; the
+    refinement once returned a bracket midpoint on the sphere at depth 7)."""
+    from lgshape.camera import primary_rays
+    degree, F = FORMULAS[name]
+    spec = lgshape.surfaces.LIBRARY[name]()
+    o32, d32 = primary_rays(spec.bbox, 256)
+    _check(lgshape.Surface(spec, search=search, depth=depth), F, degree, o32, d32,
+           groups=np.repeat(["camera"], len(o32)), min_simple=1000, noise_max=1e-3)
+
+
+def _check(surf, F, degree, o32, d32, groups, min_simple=30_000, noise_max=1e-3):
+    lo, hi = surf.lo, surf.hi
     diag = np.linalg.norm(hi - lo)
     delta = 1e-4 * diag
-    o32, d32 = _rays(rng, F, degree, lo, hi)
-
-    surf = lgshape.Surface(spec)
     res = surf.trace(o32, d32)
     t_k, hit_k = np.asarray(res.t, np.float64), np.asarray(res.hit)
     assert not np.asarray(res.capped).any(), f"{np.asarray(res.capped).sum()} rays reached the bound"
@@ -122,11 +142,11 @@ def test01_matches_polynomial_roots(name, rng):
     noise32 = 4 * np.abs(f32 - f64).max(1)
     noise_level = hit_k & ~near & (np.abs(f64[:, 4]) <= noise32)
     false_hit = hit_k & ~near & ~noise_level
-    groups = np.repeat(["outside", "inside", "grazing"], [N_OUT, N_IN, N_GRAZE])
     msg = f"noise-level hits {int(noise_level.sum())}; " + "; ".join(f"{g}: simple {int(simple[groups == g].sum())}, missed {int(missed[groups == g].sum())}, "
                     f"wrong t {int(wrong_t[groups == g].sum())}, false hits {int(false_hit[groups == g].sum())}"
-                    for g in ("outside", "inside", "grazing"))
-    assert simple.sum() > 30_000, msg          # the test exercises many roots
-    assert (simple[groups == "grazing"]).sum() > 5_000, msg
+                    for g in dict.fromkeys(groups))
+    assert simple.sum() > min_simple, msg          # the test exercises many roots
+    if "grazing" in groups:
+        assert (simple[groups == "grazing"]).sum() > 5_000, msg
     assert missed.sum() == 0 and wrong_t.sum() == 0 and false_hit.sum() == 0, msg
-    assert noise_level.sum() <= 1e-3 * len(hit_k), msg
+    assert noise_level.sum() <= noise_max * len(hit_k), msg
