@@ -3,23 +3,37 @@
 For each ray, F(t) = f(o + t d), g = dF/dt, h = d^2F/dt^2 (exact symbolic
 derivatives). The ray is clipped to the bounding box; a DDA visits the
 occupied cells of the pruning grid nearest first (:mod:`lgshape.grid`); in
-each cell the segment [a, b] is searched by stackless bisection. On an
-interval with midpoint t_m and half width r, with G >= |h| on it (a local
-interval bound, or a global constant as in the seed):
+each cell the segment [a, b] is searched by stackless bisection (an implicit
+binary tree: level and index). On an interval with midpoint t_m and half
+width r, from an enclosure of F(t_m) (and g(t_m)) and bounds on the interval:
 
-- *exclusion*: F(t_m) +- (|g(t_m)| r + G r^2 / 2) has one sign -> no root;
-- *monotonicity* (the seed's test): |g(t_m)| > G r -> F has at most one
-  root; the signs of F at the ends (bounded by the same Taylor form) decide
-  whether it has one, and in which half;
+- *exclusion*: the enclosure of F over the interval has one sign -> no root;
+- *monotonicity*: g keeps one sign on the interval -> at most one root; the
+  signs of F at the ends decide whether it has one, and in which half;
 - otherwise split.
 
-A bracketed single root is refined by safeguarded Newton (bisection where a
-step leaves the bracket) to a tolerance in t. Intervals are visited left to
-right, so the first root found is the nearest. Below a minimum width an
-interval that cannot be excluded is reported as a hit at its midpoint (a
-tangent touch or a singular point; counted as ``unresolved``). A ray that
-reaches the iteration bound is counted in ``capped`` and reported as a miss
-of the search, never silently.
+The bounds come from one of :data:`SEARCH_MODES`: ``"interval"`` bounds g
+over the interval by interval arithmetic (F in F(t_m) + [g] [-r, r]);
+``"taylor"`` and ``"global"`` are the seed's test |g(t_m)| > G r with G >= |h|
+local to the interval or global (plus F in F(t_m) +- |g(t_m)| r + [h] r^2/2).
+
+F and g at a point are evaluated in float64 and widened to a float32
+enclosure by 2^-22 relative plus an absolute ``point_error`` (2^-40 times the
+sum over the DAG of each node's largest magnitude over the box, from float64
+interval arithmetic): the assumed bound of float64 rounding, far below what
+float32 decisions resolve. So float32 noise never decides a sign.
+
+A bracketed single root is refined by safeguarded Newton in float64
+(bisection where a step leaves the bracket) until the step, or the proven
+distance |F| / min |g|, is below 1e-6 of the box diagonal. Intervals are
+visited left to right, so the first root found is the nearest. Below a
+minimum width (1e-6 of the diagonal) an interval that cannot be excluded is a
+root where F changes sign across it, or where F at its middle cannot be told
+from 0 (a tangent touch or singular point, counted as ``unresolved``);
+otherwise the search goes on after it. Tangent touches (roots of even
+multiplicity) may therefore be reported or not. A ray that reaches the
+iteration bound is counted in ``capped`` and reported as a miss of the
+search, never silently.
 
 Everything is Dr.Jit code without host round trips: it runs in LLVM and CUDA
 and inside Mitsuba integrators. Constants are opaque, so another Surface of

@@ -138,7 +138,6 @@ def _critical_points(expr, bbox, rng, n=20000):
     p = p[np.argsort(np.linalg.norm(gv, axis=1) + fv)[:400]]
     for _ in range(40):
         gv, Hv = grad_hess(p)
-        step = np.linalg.lstsq if False else None  # noqa: F841
         p = p - np.linalg.solve(Hv + 1e-12 * np.eye(3), gv[..., None])[..., 0]
     fv = evaluate(expr, dict(zip("xyz", p.T)))
     gv, _ = grad_hess(p)
