@@ -14,7 +14,7 @@ import time
 import lgshape
 import numpy as np
 import drjit as dr
-from drjit.llvm.ad import Array3f, Float
+from drjit.llvm.ad import Array3f
 
 from lgshape import baselines, bounds, camera
 from lgshape.expr import evaluate

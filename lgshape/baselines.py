@@ -24,7 +24,6 @@ from .trace import RayResult
 
 
 def _setup(surface, o, d, t_min, t_max):
-    import drjit as dr
     o, d = surface._arrays(o, d)
     Float = type(o.x)
     t0, t1 = clip_to_box(o, d, [float(v) for v in surface.lo], [float(v) for v in surface.hi],

@@ -236,8 +236,6 @@ class Samples:
 
 
 def _mitsuba_runner(method, setting, scene, rays, memory, build, extra=None):
-    import mitsuba as mi
-
     def run():
         return (scene.ray_intersect_preliminary(rays.ray).t,)
 

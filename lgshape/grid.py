@@ -22,7 +22,6 @@ nearest occupied one (:func:`next_occupied`).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np

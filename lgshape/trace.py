@@ -189,7 +189,6 @@ class Surface:
 
     def gradient(self, p):
         """grad f at points p (Array3f or (N, 3) numpy)."""
-        import drjit as dr
         p, _ = self._arrays(p, p)
         Float = type(p.x)
         m = self._kernel_data(Float)[0][0]
@@ -305,7 +304,6 @@ class Surface:
             # [tm - r, tm + r] must cover [lo, hi]: the midpoint in float64
             # (exact), the half width rounded outward.
             tm64 = 0.5 * (Float64(lo) + Float64(hi))
-            tm = Float(tm64)
             r = Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22)
             t_eval = dr.select(searching, tm64, t_n)
             F, g = evaluate([f, ge], {**point64(t_eval), **ray64}, m64)

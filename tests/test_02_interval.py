@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from conftest import ALL_CASES, case_expr, case_id, random_boxes
 
-import drjit as dr
 from drjit.llvm import Float
 
 from lgshape import bounds

@@ -6,12 +6,11 @@ spike axis, where f < 0 by construction) cross-checked by float64 brute-force
 sampling at a step 1000x finer than the spike; for termination, the
 iteration bound (no ray may reach it) and float64 values of f at the hits."""
 import numpy as np
-import pytest
 
 import lgshape
 from lgshape import baselines, parse
 from lgshape.expr import evaluate, gradient, hessian
-from lgshape.reference import along, first_sign_change
+from lgshape.reference import first_sign_change
 from lgshape.surfaces import SPIKE_AXES
 
 
