@@ -20,7 +20,8 @@ class NumpyMath:
     """float64 numpy arrays."""
     eps = 2.0 ** -51          # 2 ulp of float64: correctly rounded + - * / sqrt
     eps_t = 2.0 ** -46        # 64 ulp: libm's sin, cos, exp, log
-    tiny = 1e-300
+    u = 2.0 ** -52            # unit roundoff (2^-53) with a factor 2 of margin
+    tiny = 2.0 ** -1020       # underflow: above the largest subnormal step
     inf = math.inf
     sqrt, exp, log = staticmethod(np.sqrt), staticmethod(np.exp), staticmethod(np.log)
     sin, cos, abs = staticmethod(np.sin), staticmethod(np.cos), staticmethod(np.abs)
@@ -47,7 +48,10 @@ class DrJitMath:
         # cos, exp and log are accurate to a few ulp (pad by 16 / 64 ulp).
         self.eps = 2.0 ** -22 if single else 2.0 ** -51
         self.eps_t = 2.0 ** -19 if single else 2.0 ** -46
-        self.tiny = 1e-37 if single else 1e-300
+        self.u = 2.0 ** -23 if single else 2.0 ** -52
+        # Absolute slack for underflow: the smallest normal number, which
+        # also covers a backend that flushes subnormals to zero.
+        self.tiny = 2.0 ** -126 if single else 2.0 ** -1020
         self._consts: dict[float, object] = {}
         self.sqrt, self.exp, self.log = dr.sqrt, dr.exp, dr.log
         self.sin, self.cos, self.abs = dr.sin, dr.cos, dr.abs

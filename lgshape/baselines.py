@@ -20,11 +20,11 @@ import math
 from .arraymath import DrJitMath
 from .expr import evaluate
 from .grid import clip_to_box
-from .trace import RayResult
+from .trace import RayResult, _rays
 
 
 def _setup(surface, o, d, t_min, t_max):
-    o, d = surface._arrays(o, d)
+    o, d, _ = _rays(o, d, t_min, t_max, True)
     Float = type(o.x)
     t0, t1 = clip_to_box(o, d, [float(v) for v in surface.lo], [float(v) for v in surface.hi],
                          t_min, t_max)

@@ -31,7 +31,7 @@ from .bounds import box_env, lipschitz
 from .expr import evaluate, evaluate_interval
 
 BRICK = 4            # fine cells per brick edge (4^3 = 64 bits)
-INFLATE = 1e-3       # relative inflation of cells in the pruning tests
+INFLATE = 1e-3       # relative inflation of cells in the pruning tests (> the walk's nudge)
 
 
 @dataclass
@@ -86,8 +86,9 @@ def may_contain_surface(f, lo, hi, mode="local", L=None) -> np.ndarray:
     with np.errstate(all="ignore"):
         Lc = lipschitz(f, lo, hi)
         fi = evaluate_interval(f, box_env(lo, hi), NUMPY)
-    keep = ~(np.abs(fc) > Lc * d) & (fi.lo <= 0) & (fi.hi >= 0)
-    return keep | np.isnan(fc)
+    # A NaN centre value makes the Lipschitz test inconclusive (kept); the
+    # interval over the cell's defined part still decides.
+    return ~(np.abs(fc) > Lc * d) & (fi.lo <= 0) & (fi.hi >= 0)
 
 
 def build(f, lo, hi, depth: int = 6, mode: str = "local", L: float | None = None) -> PruningGrid:
@@ -143,7 +144,6 @@ class DeviceGrid:
         self.R = grid.resolution
         self.top = Int32(_with_distances(grid.top, grid.resolution // BRICK))
         self.bricks = UInt32(grid.bricks) if len(grid.bricks) else dr.zeros(UInt32, 2)
-        self.lo = [dr.opaque(Float, float(v)) for v in grid.lo]
         self.cell = [dr.opaque(Float, float(v)) for v in grid.cell_size]
 
 
@@ -182,7 +182,8 @@ def _dilate26(m: np.ndarray) -> np.ndarray:
 
 def clip_to_box(o, d, lo, hi, t_min, t_max):
     """[t_start, t_end] of o + t d inside the box [lo, hi] and [t_min, t_max]
-    (Dr.Jit arrays; t_start > t_end where the ray misses)."""
+    (Dr.Jit arrays or lists of them, any precision; t_start > t_end where the
+    ray misses)."""
     import drjit as dr
     Float = type(o[0])
     t0, t1 = Float(-dr.inf), Float(dr.inf)
@@ -196,14 +197,32 @@ def clip_to_box(o, d, lo, hi, t_min, t_max):
     return dr.maximum(t0, Float(t_min)), dr.minimum(t1, Float(t_max))
 
 
+def nudge_cells(R: int) -> float:
+    """The positional nudge of the walk, in cells: 8 float32 ulps of R."""
+    return 8.0 * R * 2.0**-24
+
+
 def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
     """From parameter t along o + t d, find the first occupied fine cell.
 
-    A stateless DDA: each step locates the cell at t (nudged forward), and
-    moves t to the exit of that cell, or of the cube of empty bricks around
-    it. Returns (found, t_enter, t_exit) of that cell; lanes that pass t_end
-    return found = False (the caller clips [t, t_end] to the box, so points
-    just outside it by rounding belong to the boundary cells)."""
+    ``o`` is the ray's origin relative to the grid's lower corner (the
+    caller moves it to the box entry, so t stays small and float32 resolves
+    the cells). A stateless DDA: each step locates the cell at t and moves t
+    to the exit of that cell, or of the cube of empty bricks around it.
+    Returns (found, t_enter, t_exit, stuck) of that cell; lanes that pass
+    t_end return found = False.
+
+    Locating is nudged forward in *position*: each coordinate moves by
+    ``NUDGE`` cells in the direction of travel, so a point on a face (within
+    rounding of it) is located in the cell the ray enters, even where the
+    face's t is uncertain (a ray nearly parallel to the face). That is sound
+    because cells are pruned inflated by ``INFLATE`` (> NUDGE): a ray point
+    within NUDGE of an empty cell has no surface. The walk is bounded: a line
+    crosses at most 3 R cells, so a lane still walking after 4 R + 16 steps
+    returns stuck = True (the caller counts it as capped). Where the nudged
+    point lies past the grid's last face on an axis (the ray leaves through
+    it within rounding), that face is ignored and the walk goes on through
+    the boundary cells along it, so no cell the ray grazes is skipped."""
     import drjit as dr
     Float = type(t)
     Int32 = dr.int32_array_t(Float)
@@ -211,14 +230,20 @@ def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
     Bool = dr.mask_t(Float)
     B, nb, R = BRICK, g.R // BRICK, g.R
     cell_min = dr.minimum(dr.minimum(g.cell[0], g.cell[1]), g.cell[2])
-    nudge = 1e-5 * cell_min / dr.norm(d)       # forward progress across faces
+    dlen = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    t_nudge = 1e-7 * cell_min / dr.select(dlen > 0, dlen, 1.0)   # fallback progress in t
+    shift = [dr.select(d[a] > 0, nudge_cells(R), dr.select(d[a] < 0, -nudge_cells(R), 0.0))
+             for a in range(3)]
+    max_steps = 4 * R + 16
 
-    def body(t, active, found, t_exit):
-        tp = t + dr.maximum(nudge, dr.abs(t) * 2.0**-20)   # progress even where ulp(t) > nudge
-        i, inside = [], Bool(active) & (t <= t_end)
+    def body(t, active, found, t_exit, steps):
+        i, out, inside = [], [], Bool(active) & (t <= t_end)
         for a in range(3):
-            p = (o[a] + tp * d[a] - g.lo[a]) / g.cell[a]
+            p = (o[a] + t * d[a]) / g.cell[a] + shift[a]
             i.append(dr.clip(Int32(dr.floor(p)), 0, R - 1))
+            # Past the grid's last face in the direction of travel (within
+            # rounding of it): walk on in the boundary cells along that face.
+            out.append(((p >= R) & (d[a] > 0)) | ((p < 0) & (d[a] < 0)))
         b = UInt32(((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2))
         v = dr.gather(Int32, g.top, b, inside)
         brick = inside & (v > 0)
@@ -231,17 +256,20 @@ def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
         for a in range(3):
             lo_c = dr.select(brick, i[a], ((i[a] >> 2) - (k - 1)) * B)
             hi_c = dr.select(brick, i[a] + 1, ((i[a] >> 2) + k) * B)
-            face = g.lo[a] + Float(dr.select(d[a] > 0, hi_c, lo_c)) * g.cell[a]
-            t_a = dr.select(d[a] == 0, dr.inf, (face - o[a]) / d[a])
+            face = Float(dr.select(d[a] > 0, hi_c, lo_c)) * g.cell[a]
+            t_a = dr.select((d[a] == 0) | out[a], dr.inf, (face - o[a]) / d[a])
             t_out = dr.minimum(t_out, t_a)
-        t_out = dr.maximum(t_out, tp)        # rounding must never stall a ray
+        # rounding must never stall a ray
+        t_out = dr.maximum(t_out, t + dr.maximum(t_nudge, dr.abs(t) * 2.0**-22))
         found = found | hit
         t_exit = dr.select(hit, t_out, t_exit)
         t = dr.select(inside & ~hit, t_out, t)
-        return t, inside & ~hit, found, t_exit
+        steps = steps + 1
+        return t, inside & ~hit & (steps < max_steps), found, t_exit, steps
 
     n = dr.width(t)
-    t_in, _, found, t_exit = dr.while_loop(
-        state=(Float(t), Bool(active), dr.zeros(Bool, n), dr.zeros(Float, n)),
+    t_in, walking, found, t_exit, steps = dr.while_loop(
+        state=(Float(t), Bool(active), dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Int32, n)),
         cond=lambda t, active, *_: active, body=body, label="lgshape_dda")
-    return found, t_in, t_exit
+    stuck = ~found & (steps >= max_steps) & (t_in <= t_end)
+    return found, t_in, t_exit, stuck

@@ -1,18 +1,31 @@
 """Interval arithmetic on numpy or Dr.Jit arrays.
 
 Contract: for every op, the result ``[lo, hi]`` contains every value the
-op takes over its input intervals (in exact arithmetic), and after each op the
-bounds are padded outward by ``eps * |bound| + tiny`` (for the transcendental
-ops, ``eps_t * (|bound| + 1)``, as their absolute error does not scale with
-the result; see :mod:`lgshape.arraymath` for the values),
-which covers the rounding of float32 and float64 operations; the rounding mode
-itself is not directed. Division by an interval that contains 0, and sqrt or
-log of an interval reaching below 0, give infinite bounds. A NaN bound (from
-``inf - inf``, say) is turned into an infinite one in :func:`pad`, so a NaN
-never narrows a result. Infinite inputs are allowed.
+op takes, in exact arithmetic, at the points of its input intervals where it
+is *defined* (not NaN). Where f is NaN there is no surface (see
+:mod:`lgshape.trace`), so values at undefined points need no enclosing: sqrt
+and log of an interval reaching below 0 enclose the defined part
+(``sqrt([-1, 4]) = [0, 2]``), and an op defined nowhere on its input returns
+the empty marker ``[+inf, +inf]`` (any interval is valid there; this one
+keeps f's interval away from 0, so the region is excluded). The derivative of
+such an op is unbounded at the domain's edge (``1 / (2 sqrt u)`` with u
+reaching 0), so a mean-value bound is never taken across an undefined gap.
+
+After each op the bounds are padded outward to cover rounding (the rounding
+mode is not directed): ``eps * |bound| + tiny`` for correctly rounded ops,
+``eps_t * |bound| + tiny`` for exp, ``eps_t * (|bound| + 1)`` for sin, cos and
+log (their absolute error does not scale with the result), and ``n * eps`` for
+an integer power by n multiplications; see :mod:`lgshape.arraymath` for the
+values. Ops whose results are never negative (sqrt, exp, even powers) are
+clamped at 0 after padding. A NaN bound (from ``inf - inf``, ``0 * inf``) is
+turned into an infinite one in :func:`pad`, so a NaN never narrows a result;
+a lower bound of +inf (overflow of a positive value, or the empty marker)
+stays +inf and an upper bound of -inf stays -inf: overflow is rounded to
+nearest, so the exact value lies beyond the largest float. Division by an
+interval that contains 0 gives infinite bounds.
 
 Ops whose rule only selects among input bounds (neg, abs, min, max) are
-exact and skip the padding (``Op.exact`` in the op table).
+exact and skip the padding (``Op.rounding == "exact"`` in the op table).
 
 Operands of the rules may be intervals or plain arrays (a degenerate interval,
 e.g. the ray direction); :func:`promote` makes an interval of a plain value.
@@ -40,20 +53,33 @@ def magnitude(m, a: Interval):
     return m.maximum(m.abs(a.lo), m.abs(a.hi))
 
 
-def pad(m, r: Interval, transcendental: bool = False) -> Interval:
-    eps = m.eps_t if transcendental else m.eps
-    slack = m.tiny + (eps if transcendental else 0.0)
-    lo = r.lo - (m.abs(r.lo) * eps + slack)
-    hi = r.hi + (m.abs(r.hi) * eps + slack)
+def pad(m, r: Interval, rounding: str = "rounded", scale: float = 1.0) -> Interval:
+    """Widen r outward by the rounding error of one op of the given kind
+    (``"rounded"``, ``"relative_t"``, ``"absolute_t"``); ``scale`` multiplies
+    the relative part (an integer power's number of roundings)."""
+    eps = (m.eps_t if rounding != "rounded" else m.eps) * scale
+    slack = m.tiny + (eps if rounding == "absolute_t" else 0.0)
+    lo = m.select(r.lo == math.inf, r.lo, r.lo - (m.abs(r.lo) * eps + slack))
+    hi = m.select(r.hi == -math.inf, r.hi, r.hi + (m.abs(r.hi) * eps + slack))
     lo = m.select(m.isnan(lo), -math.inf, lo)
     hi = m.select(m.isnan(hi), math.inf, hi)
     return Interval(lo, hi)
+
+
+def nonneg(m, r: Interval) -> Interval:
+    """Clamp the lower bound of a never-negative op's result at 0."""
+    return Interval(m.maximum(r.lo, 0.0), r.hi)
 
 
 def promote(m, v) -> Interval:
     if isinstance(v, Interval):
         return v
     return pad(m, Interval(v, v))
+
+
+def is_empty(m, r: Interval):
+    """True where r is the empty marker (an op defined nowhere on its input)."""
+    return (r.lo == math.inf) & (r.hi == math.inf)
 
 
 def i_add(m, a, b):
@@ -99,9 +125,10 @@ def i_pow(m, a, n: int):
 
 
 def i_sqrt(m, a):
-    neg = a.lo < 0
-    return Interval(m.select(neg, -math.inf, m.sqrt(m.maximum(a.lo, 0.0))),
-                    m.select(neg, math.inf, m.sqrt(m.maximum(a.hi, 0.0))))
+    """sqrt over the defined part of a; the empty marker where a < 0 throughout."""
+    nowhere = a.hi < 0
+    return Interval(m.select(nowhere, math.inf, m.sqrt(m.maximum(a.lo, 0.0))),
+                    m.select(nowhere, math.inf, m.sqrt(m.maximum(a.hi, 0.0))))
 
 
 def i_exp(m, a):
@@ -109,9 +136,11 @@ def i_exp(m, a):
 
 
 def i_log(m, a):
-    neg = a.lo < 0
-    return Interval(m.select(neg, -math.inf, m.log(m.maximum(a.lo, 0.0))),
-                    m.select(neg, math.inf, m.log(m.maximum(a.hi, 0.0))))
+    """log over the defined part of a (log 0 = -inf); the empty marker where
+    a < 0 throughout."""
+    nowhere = a.hi < 0
+    return Interval(m.select(nowhere, math.inf, m.log(m.maximum(a.lo, 0.0))),
+                    m.select(nowhere, math.inf, m.log(m.maximum(a.hi, 0.0))))
 
 
 def _periodic(m, a, f, peak: float):

@@ -17,23 +17,48 @@ over the interval by interval arithmetic (F in F(t_m) + [g] [-r, r]);
 ``"taylor"`` and ``"global"`` are the seed's test |g(t_m)| > G r with G >= |h|
 local to the interval or global (plus F in F(t_m) +- |g(t_m)| r + [h] r^2/2).
 
-F and g at a point are evaluated in float64 and widened to a float32
-enclosure by 2^-22 relative plus an absolute ``point_error`` (2^-40 times the
-sum over the DAG of each node's largest magnitude over the box, from float64
-interval arithmetic): the assumed bound of float64 rounding, far below what
-float32 decisions resolve. So float32 noise never decides a sign.
+**The contract for the roots of any f.** Where f is NaN or infinite there
+is no surface. A root is reported only where F is continuous and crosses
+zero, or is proven to touch it (|F| within its rounding error bound of 0):
+
+- a sign change across a pole (where the interval of F over the smallest
+  interval is unbounded) is not a root;
+- a sign change across a gap where f is undefined is not a root (the
+  derivative is unbounded at the edge of a domain, so the monotonicity test
+  never spans the gap, and the ends must both be defined);
+- an f that is NaN or infinite at every sampled point of its box is refused
+  at construction (:class:`Surface`).
+
+**Point values** of F and g are evaluated in float64 with a running error
+bound per value (:mod:`lgshape.pointerror`): the bound is relative to the
+magnitudes actually evaluated along that ray, never a fixed absolute floor,
+so the hits of k * f are those of f for any k that float32 intervals hold.
+Signs are decided only outside that bound, so rounding noise never decides
+one. **Interval values** of F and g over a ray interval come from float32
+interval arithmetic (:mod:`lgshape.interval`); F over an interval is the
+intersection of the natural interval form and the mean-value form.
+
+**Coordinates.** Each ray is moved to its box entry in float64, and f is
+evaluated in coordinates local to the box centre (:mod:`lgshape.expr.shift`),
+so geometry far from the origin is solved to the same relative accuracy as
+near it. The returned t is float32 (as Mitsuba's), so it carries its own
+rounding, ulp(t) / 2; :attr:`RayResult.t64` keeps the float64 value.
 
 A bracketed single root is refined by safeguarded Newton in float64
 (bisection where a step leaves the bracket) until the step, or the proven
 distance |F| / min |g|, is below 1e-6 of the box diagonal. Intervals are
 visited left to right, so the first root found is the nearest. Below a
 minimum width (1e-6 of the diagonal) an interval that cannot be excluded is a
-root where F changes sign across it, or where F at its middle cannot be told
-from 0 (a tangent touch or singular point, counted as ``unresolved``);
-otherwise the search goes on after it. Tangent touches (roots of even
-multiplicity) may therefore be reported or not. A ray that reaches the
-iteration bound is counted in ``capped`` and reported as a miss of the
-search, never silently.
+root where F changes sign across it (and is bounded there), or where F at its
+middle is within its error bound of 0 (a tangent touch or singular point,
+counted as ``unresolved``); otherwise the search goes on after it. Tangent
+touches (roots of even multiplicity) may therefore be reported or not.
+
+**Every ray ends.** Rays with a zero, infinite or NaN direction, or a NaN
+origin, are misses. The grid walk is bounded by the number of cells a line
+can cross; the search by ``max_iterations``. A ray that reaches the bound is
+counted in ``capped`` and reported as a miss of the search, never silently:
+the benchmark counts capped rays as defects.
 
 Everything is Dr.Jit code without host round trips: it runs in LLVM and CUDA
 and inside Mitsuba integrators. Constants are opaque, so another Surface of
@@ -42,13 +67,16 @@ the same expression shape reuses the compiled kernels.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import numpy as np
 
-from . import bounds, grid as gridmod
-from .arraymath import DrJitMath
-from .expr import Expr, evaluate, gradient, parse, ray_derivatives
+from . import grid as gridmod
+from .arraymath import NUMPY, DrJitMath
+from .expr import (Expr, evaluate, evaluate_interval, evaluate_with_error, gradient,
+                   hessian, parse, ray_derivatives)
+from .expr.shift import localize
 from .interval import Interval
 from .surfaces import Implicit
 
@@ -60,6 +88,9 @@ MAX_LEVEL = 22          # bisection depth bound inside one cell segment
 #: seed's test with one G: hand-given, or the Hessian norm over the box).
 SEARCH_MODES = ("interval", "taylor", "global")
 
+#: Points sampled to check hand-given L and G, and that f is defined somewhere.
+CHECK_SAMPLES = 4096
+
 
 @dataclass
 class RayResult:
@@ -70,6 +101,7 @@ class RayResult:
     iterations: object   # UInt32: search + refinement iterations
     capped: object       # Bool: reached the iteration bound
     unresolved: object   # Bool: hit decided at the minimum width (tangent/singular)
+    t64: object = None   # Float64: the same t before rounding to float32
 
 
 def _as_expr(expr):
@@ -83,15 +115,34 @@ def _as_expr(expr):
                     f"not {type(expr).__name__}")
 
 
-def _point_error(f, lo, hi) -> float:
-    from .arraymath import NUMPY
-    from .expr import evaluate_interval
-    from .expr.node import topological
-    nodes = [n for n in topological([f]) if n.op not in ("const", "var")]
-    with np.errstate(all="ignore"):
-        res = evaluate_interval(nodes, bounds.box_env(lo[None], hi[None]), NUMPY)
-    total = sum(float(np.max(np.maximum(np.abs(r.lo), np.abs(r.hi)))) for r in res)
-    return total * 2.0**-40 if np.isfinite(total) else 0.0
+def _check_box(bbox):
+    try:
+        lo, hi = (np.asarray(v, dtype=np.float64).reshape(3) for v in bbox)
+    except (TypeError, ValueError):
+        raise ValueError(f"bbox must be ((x0, y0, z0), (x1, y1, z1)), got {bbox!r}") from None
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise ValueError(f"bbox must be finite on every side, got {bbox}")
+    if not np.all(hi > lo):
+        raise ValueError(f"bbox must have min < max on every axis, got {bbox}")
+    return lo, hi
+
+
+def _check_int(name, v, lo, hi):
+    if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+        raise ValueError(f"{name} must be an integer, got {v!r}")
+    if not lo <= int(v) <= hi:
+        raise ValueError(f"{name} must be between {lo} and {hi}, got {v}")
+    return int(v)
+
+
+def _sample_points(lo, hi, n=CHECK_SAMPLES, seed=0):
+    """Points of the box for the construction checks: a regular grid
+    (corners and centres included) and random points."""
+    k = 9
+    axes = [np.linspace(lo[i], hi[i], k) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    rnd = lo + (hi - lo) * np.random.default_rng(seed).uniform(0, 1, (n - len(grid), 3))
+    return np.concatenate([grid, rnd])
 
 
 class Surface:
@@ -99,13 +150,19 @@ class Surface:
 
     ``expr``: an expression, a string of the expression language or a library
     surface (:mod:`lgshape.surfaces`, which brings its own box). ``bbox``:
-    ``((x0, y0, z0), (x1, y1, z1))``. ``L``: a hand-given Lipschitz constant of
-    f over the box (then the pruning uses the seed's global test). ``G``: a
-    hand-given bound of |d^2 F/dt^2| for unit directions (then the search uses
-    it instead of local interval bounds). ``depth``: the pruning depth (2**depth
-    cells per axis). ``search``: how ray intervals are bounded, see
-    :data:`SEARCH_MODES` (default ``"interval"``, or ``"global"`` when ``G`` is
-    given). ``max_iterations``: the per-ray bound on search steps.
+    ``((x0, y0, z0), (x1, y1, z1))``, finite. ``L``: a hand-given Lipschitz
+    constant of f over the box (then the pruning uses the seed's global test).
+    ``G``: a hand-given bound of |d^2 F/dt^2| for unit directions (then the
+    search uses it instead of local interval bounds). Hand-given L and G are
+    checked against |grad f| and the Hessian's norm at sampled points and
+    refused, naming the point, where they are too small. ``depth``: the
+    pruning depth, an integer from 2 to 10 (2**depth cells per axis).
+    ``search``: how ray intervals are bounded, see :data:`SEARCH_MODES`
+    (default ``"interval"``, or ``"global"`` when ``G`` is given).
+    ``max_iterations``: the per-ray bound on search steps.
+
+    An f that is NaN or infinite at every sampled point of the box has no
+    surface anywhere: that is refused with a ValueError.
     """
 
     def __init__(self, expr, bbox=None, *, L: float | None = None, G: float | None = None,
@@ -115,29 +172,68 @@ class Surface:
         bbox = bbox if bbox is not None else default_box
         if bbox is None:
             raise ValueError("Surface needs a bbox ((x0, y0, z0), (x1, y1, z1)) for a plain expression")
-        lo, hi = (np.asarray(v, dtype=np.float64).reshape(3) for v in bbox)
-        if not np.all(hi > lo):
-            raise ValueError(f"bbox must have min < max on every axis, got {bbox}")
+        lo, hi = _check_box(bbox)
         for name, v in (("L", L), ("G", G)):
-            if v is not None and not (math.isfinite(v) and v > 0):
+            if v is not None and not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive finite number, got {v}")
-        self.expr, self.lo, self.hi = f, lo, hi
-        self.g_expr, self.h_expr = ray_derivatives(f)
-        self.L, self.G_hand = L, G
-        self.depth = 6 if depth is None else int(depth)
+        self.depth = _check_int("depth", 6 if depth is None else depth, 2, 10)
+        self.max_iterations = _check_int("max_iterations", max_iterations, 1, 2**30)
         if search is None:
             search = "global" if G is not None else "interval"
         if search not in SEARCH_MODES:
             raise ValueError(f"unknown search mode {search!r} (one of {', '.join(SEARCH_MODES)})")
         self.search = search
-        self.max_iterations = int(max_iterations)
+        self.expr, self.lo, self.hi = f, lo, hi
+        self._check_defined()
+        if L is not None:
+            self._check_L(float(L))
+        if G is not None:
+            self._check_G(float(G))
+        self.L, self.G_hand = L, G
+        # The search evaluates f about the box centre (see the module notes).
+        self.centre = 0.5 * (lo + hi)
+        self.local_expr = localize(f, self.centre)
+        self.g_expr, self.h_expr = ray_derivatives(self.local_expr)
         self.grid = gridmod.build(f, lo, hi, self.depth,
                                   mode="global" if L is not None else "local", L=L)
         self._device = {}
-        # Absolute error bound of a float64 point evaluation of f in the box
-        # (POINT_ERROR): 2^-40 times the sum over the DAG of each node's
-        # largest magnitude over the box (float64 interval arithmetic).
-        self.point_error = _point_error(f, lo, hi)
+
+    # -- construction checks ----------------------------------------------------
+    def _check_defined(self):
+        p = _sample_points(self.lo, self.hi)
+        with np.errstate(all="ignore"):
+            v = evaluate(self.expr, {c: p[:, i] for i, c in enumerate("xyz")}, NUMPY)
+        if not np.any(np.isfinite(np.broadcast_to(v, len(p)))):
+            raise ValueError(f"f = {self.expr!r} is NaN or infinite at all {len(p)} sampled "
+                             f"points of the box {self.bbox}: it has no surface there")
+
+    def _check_L(self, L):
+        p = _sample_points(self.lo, self.hi, seed=1)
+        with np.errstate(all="ignore"):
+            g = evaluate(list(gradient(self.expr)), {c: p[:, i] for i, c in enumerate("xyz")}, NUMPY)
+        norm = np.sqrt(sum(np.broadcast_to(gi, len(p)) ** 2 for gi in g))
+        norm = np.where(np.isfinite(norm), norm, -1.0)
+        i = int(np.argmax(norm))
+        if norm[i] > L:
+            raise ValueError(f"L = {L} is too small: |grad f| = {norm[i]:.6g} at "
+                             f"{tuple(round(float(c), 6) for c in p[i])} (a valid L bounds "
+                             f"|grad f| over the whole box)")
+
+    def _check_G(self, G):
+        p = _sample_points(self.lo, self.hi, seed=2)
+        H = hessian(self.expr)
+        with np.errstate(all="ignore"):
+            flat = evaluate([H[i][j] for i in range(3) for j in range(3)],
+                            {c: p[:, i] for i, c in enumerate("xyz")}, NUMPY)
+        M = np.stack([np.broadcast_to(e, len(p)) for e in flat], -1).reshape(-1, 3, 3)
+        ok = np.all(np.isfinite(M), axis=(1, 2))
+        lam = np.zeros(len(p))
+        lam[ok] = np.abs(np.linalg.eigvalsh(0.5 * (M[ok] + M[ok].transpose(0, 2, 1)))).max(1)
+        i = int(np.argmax(lam))
+        if lam[i] > G:
+            raise ValueError(f"G = {G} is too small: |d^2F/dt^2| reaches {lam[i]:.6g} for a "
+                             f"unit direction at {tuple(round(float(c), 6) for c in p[i])} "
+                             f"(a valid G bounds the Hessian's norm over the whole box)")
 
     # -- host-side facts ------------------------------------------------------
     @property
@@ -155,6 +251,7 @@ class Surface:
 
     def global_G(self) -> float:
         """G for unit directions: the hand-given one, else the Hessian norm over the box."""
+        from . import bounds
         if self.G_hand is not None:
             return self.G_hand
         return float(bounds.hessian_norm(self.expr, self.lo[None], self.hi[None])[0])
@@ -168,30 +265,22 @@ class Surface:
         key = Float
         if key not in self._device:
             import drjit as dr
-            m = (DrJitMath(Float), DrJitMath(dr.float64_array_t(Float)))
+            Float64 = dr.float64_array_t(Float)
             dev = gridmod.DeviceGrid(self.grid, Float)
-            box = ([dr.opaque(Float, float(v)) for v in self.lo],
-                   [dr.opaque(Float, float(v)) for v in self.hi])
-            self._device[key] = (m, dev, dr.opaque(Float, self.point_error), box,
-                                 dr.opaque(Float, self.diagonal))
+            self._device[key] = _KernelData(
+                m=DrJitMath(Float), m64=DrJitMath(Float64), grid=dev,
+                lo=[dr.opaque(Float64, float(v)) for v in self.lo],
+                hi=[dr.opaque(Float64, float(v)) for v in self.hi],
+                centre=[dr.opaque(Float64, float(v)) for v in self.centre],
+                grid_origin=[dr.opaque(Float64, float(v)) for v in self.centre - self.lo],
+                diag=dr.opaque(Float, self.diagonal))
         return self._device[key]
-
-    @staticmethod
-    def _arrays(o, d):
-        import drjit as dr
-        if not dr.is_array_v(o):
-            from drjit.llvm.ad import Array3f
-            o, d = (np.ascontiguousarray(np.asarray(v, dtype=np.float32).reshape(-1, 3).T) for v in (o, d))
-            o, d = Array3f(o), Array3f(d)
-            dr.eval(o, d)
-            return o, d
-        return o, d
 
     def gradient(self, p):
         """grad f at points p (Array3f or (N, 3) numpy)."""
-        p, _ = self._arrays(p, p)
+        p = _points(p)
         Float = type(p.x)
-        m = self._kernel_data(Float)[0][0]
+        m = self._kernel_data(Float).m
         gx, gy, gz = evaluate(list(gradient(self.expr)), {"x": p.x, "y": p.y, "z": p.z}, m)
         return type(p)(gx, gy, gz)
 
@@ -204,8 +293,8 @@ class Surface:
 
     def value(self, p):
         """f at points p."""
-        p, _ = self._arrays(p, p)
-        return evaluate(self.expr, {"x": p.x, "y": p.y, "z": p.z}, self._kernel_data(type(p.x))[0][0])
+        p = _points(p)
+        return evaluate(self.expr, {"x": p.x, "y": p.y, "z": p.z}, self._kernel_data(type(p.x)).m)
 
     def intersect(self, o, d, t_min=0.0, t_max=math.inf, active=True):
         """Nearest root t in [t_min, t_max] along o + t d: returns (t, hit),
@@ -218,216 +307,362 @@ class Surface:
         return self.trace(o, d, t_min, t_max, active, any_hit=True).hit
 
     def trace(self, o, d, t_min=0.0, t_max=math.inf, active=True, any_hit=False) -> RayResult:
-        """The search with its per-ray statistics (see :class:`RayResult`)."""
-        import drjit as dr
-        o, d = self._arrays(o, d)
-        Float = type(o.x)
-        UInt32 = dr.uint32_array_t(Float)
-        Int32 = dr.int32_array_t(Float)
-        Bool = dr.mask_t(Float)
-        (m, m64), dev, point_err, (blo, bhi), diag = self._kernel_data(Float)
-        Float64 = m64.Float
-        n = max(dr.width(o), dr.width(d))
-        f, ge, he = self.expr, self.g_expr, self.h_expr
-        search_mode = self.search
-        if search_mode == "global":
-            G_glob = dr.opaque(Float, self.global_G()) * dr.squared_norm(d)
+        """The search with its per-ray statistics (see :class:`RayResult`).
 
-        t_start, t_end = gridmod.clip_to_box(o, d, blo, bhi, t_min, t_max)
-        active = (Bool(active) | dr.zeros(Bool, n)) & (t_start <= t_end) & dr.isfinite(t_start)
+        ``o``, ``d``: Dr.Jit Array3f (any backend) or numpy arrays of shape
+        (N, 3) (one ray: (3,)); t_min, t_max, active: scalars or arrays of N.
+        Arrays of one ray broadcast against N; other mismatched sizes raise
+        ValueError. Empty input gives empty output."""
+        o, d, n = _rays(o, d, t_min, t_max, active)
+        if n == 0:
+            return _empty_result(type(o.x))
+        return _search(self, o, d, t_min, t_max, active, any_hit)
 
-        dlen = dr.norm(d)
-        cell = dr.minimum(dr.minimum(dev.cell[0], dev.cell[1]), dev.cell[2])
-        margin = 1e-3 * cell / dlen          # neighbouring segments overlap by this much
-        r_min = 1e-6 * diag / dlen           # minimum half width of a search interval
-        tol = Float64(1e-6 * diag / dlen)    # refinement tolerance in t
-        # Values at points of the ray are taken in float64 (as enclosures in
-        # the search), so float32 rounding noise never decides a sign.
-        o64 = [Float64(o[i]) for i in range(3)]
-        d64 = [Float64(d[i]) for i in range(3)]
-        ray64 = {"dx": d64[0], "dy": d64[1], "dz": d64[2]}
 
-        def point64(t):
-            t = Float64(t)
-            return {v: o64[i] + t * d64[i] for i, v in enumerate("xyz")}
+@dataclass
+class _KernelData:
+    """A Surface's device-side constants for one backend (opaque, so a new
+    value does not recompile)."""
+    m: object            # DrJitMath, float32 (intervals)
+    m64: object          # DrJitMath, float64 (point values)
+    grid: object         # gridmod.DeviceGrid
+    lo: list             # box, float64
+    hi: list
+    centre: list         # origin of the local coordinates, float64
+    grid_origin: list    # centre - lo: local coordinates -> grid coordinates
+    diag: object         # box diagonal, float32
 
-        def sgn(v):
-            return dr.select(v > 0, 1, dr.select(v < 0, -1, 0))
 
-        def sign_of(lo, hi):
-            """+1 / -1 where [lo, hi] has one strict sign, else 0."""
-            return dr.select(lo > 0, 1, dr.select(hi < 0, -1, 0))
+# ---------------------------------------------------------------------------
+# Inputs
+# ---------------------------------------------------------------------------
 
-        def enclose(v):
-            """A float32 enclosure of a float64 point value (see POINT_ERROR)."""
-            lo, hi = Float(v), Float(v)
-            pad_abs = point_err
-            return (lo - (dr.abs(lo) * 2.0**-22 + pad_abs), hi + (dr.abs(hi) * 2.0**-22 + pad_abs))
+def _width(v):
+    import drjit as dr
+    if isinstance(v, np.ndarray):
+        return v.size if v.ndim else 1
+    return dr.width(v) if dr.is_array_v(v) else 1
 
-        def interval_of(level, idx, a, b):
-            w = (b - a) / Float(UInt32(1) << UInt32(level))
-            last = idx + 1 == (Int32(1) << level)
-            return a + Float(idx) * w, dr.select(last, b, a + Float(idx + 1) * w)
 
-        def advance(level, idx):
-            """The next interval to the right in the implicit binary tree."""
-            nxt = idx + 1
-            tz = dr.minimum(Int32(dr.tzcnt(UInt32(nxt))), level)
-            level, idx = level - tz, nxt >> tz
-            return level, idx, (level == 0) & (idx == 1)
+def _points(p):
+    """Points as a Dr.Jit Array3f (numpy input: (N, 3) or (3,))."""
+    import drjit as dr
+    if dr.is_array_v(p):
+        return p
+    from drjit.llvm.ad import Array3f
+    a = _as_n3(p, "p")
+    return Array3f(np.ascontiguousarray(a.T))
 
-        def newton(t, F, g, t_lo, t_hi):
-            tn = t - F / g
-            return dr.select((tn > t_lo) & (tn < t_hi), tn, 0.5 * (t_lo + t_hi))
 
-        # One loop; each lane is in one of these modes. Every iteration takes
-        # one float64 point evaluation (F, g) and one interval evaluation.
-        SEEK, SEARCH, REFINE, TINY_A, TINY_B, DONE = range(6)
-        max_it = self.max_iterations
+def _as_n3(v, name):
+    a = np.asarray(v, dtype=np.float32)
+    if a.ndim == 1 and a.shape[0] == 3:
+        a = a[None]
+    if a.ndim != 2 or a.shape[1] != 3:
+        hint = " (it looks transposed: pass (N, 3))" if a.ndim == 2 and a.shape[0] == 3 else ""
+        raise ValueError(f"{name} must be an (N, 3) array or a Dr.Jit Array3f, "
+                         f"got shape {a.shape}{hint}")
+    return a
 
-        def body(mode, t_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min,
-                 t_hit, hit, unres, evals, iters):
-            # ---- Next occupied cell (DDA, jumping over empty space) ----
-            seek = mode == SEEK
-            found, ta, tb = gridmod.next_occupied(dev, o, d, t_cur, t_end, seek)
-            t_cur = dr.select(seek, tb, t_cur)
-            a = dr.select(seek, dr.maximum(ta - margin, t_start), a)
-            b = dr.select(seek, dr.minimum(tb + margin, t_end), b)
-            level = dr.select(seek, 0, level)
-            idx = dr.select(seek, 0, idx)
-            mode = dr.select(seek, dr.select(found & (a <= b), SEARCH, DONE), mode)
 
-            # ---- Evaluations ----
-            searching = mode == SEARCH
-            refining = mode == REFINE
-            lo, hi = interval_of(level, idx, a, b)
-            # [tm - r, tm + r] must cover [lo, hi]: the midpoint in float64
-            # (exact), the half width rounded outward.
-            tm64 = 0.5 * (Float64(lo) + Float64(hi))
-            r = Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22)
-            t_eval = dr.select(searching, tm64, t_n)
-            F, g = evaluate([f, ge], {**point64(t_eval), **ray64}, m64)
-            busy = mode != DONE
-            iters = iters + dr.select(busy, 1, 0)
-            if search_mode != "global":
-                # Only searching lanes need it: a real branch skips the work
-                # where a whole SIMD packet is refining.
-                def seg_bounds(lo, hi):
-                    r_ = bounds.segment_interval(ge if search_mode == "interval" else he,
-                                                 o, d, lo, hi, m)
-                    return r_.lo, r_.hi
-                seg = Interval(*dr.if_stmt(args=(lo, hi), cond=searching, true_fn=seg_bounds,
-                                           false_fn=lambda lo, hi: (Float(0), Float(0)),
-                                           label="lgshape_bounds"))
-            evals = evals + dr.select(busy, 1, 0) + dr.select(searching & (search_mode != "global"), 1, 0)
-
-            # ---- Search step: exclude, bracket, split (or tiny) ----
-            Fm = enclose(F)
-            if search_mode == "interval":
-                # Mean-value form: F(t) in F(t_m) + [g] [-r, r].
-                g_lo, g_hi = seg.lo, seg.hi
-                F_lo = Fm[0] + dr.minimum(r * g_lo, -r * g_hi)
-                F_hi = Fm[1] + dr.maximum(r * g_hi, -r * g_lo)
-                Fa = (Fm[0] - r * g_hi, Fm[1] - r * g_lo)
-                Fb = (Fm[0] + r * g_lo, Fm[1] + r * g_hi)
+def _rays(o, d, t_min, t_max, active):
+    """Checked ray arrays: (o, d, n) with o, d Dr.Jit Array3f."""
+    import drjit as dr
+    if not dr.is_array_v(o) or not dr.is_array_v(d):
+        from drjit.llvm.ad import Array3f
+        conv = []
+        for name, v in (("o", o), ("d", d)):
+            if dr.is_array_v(v):
+                conv.append(v)
             else:
-                # Second-order Taylor form with G >= |h|: the seed's |g(t_m)| > G r.
-                h_lo, h_hi = (seg.lo, seg.hi) if search_mode == "taylor" else (-G_glob, G_glob)
-                G = dr.maximum(dr.abs(h_lo), dr.abs(h_hi))
-                gm = enclose(g)
-                q2 = 0.5 * r * r
-                gr_lo, gr_hi = gm[0] * r, gm[1] * r
-                ag = dr.maximum(dr.abs(gr_lo), dr.abs(gr_hi))
-                g_lo, g_hi = gm[0] - G * r, gm[1] + G * r
-                F_lo = Fm[0] - ag + dr.minimum(h_lo, 0) * q2
-                F_hi = Fm[1] + ag + dr.maximum(h_hi, 0) * q2
-                Fa = (Fm[0] - gr_hi + h_lo * q2, Fm[1] - gr_lo + h_hi * q2)
-                Fb = (Fm[0] + gr_lo + h_lo * q2, Fm[1] + gr_hi + h_hi * q2)
-            excluded = ((F_lo > 0) | (F_hi < 0)) & dr.isfinite(F)
-            monotone = (g_lo > 0) | (g_hi < 0)
-            s_a, s_b, s_m = sign_of(*Fa), sign_of(*Fb), sign_of(*Fm)
-            left = monotone & (s_m != 0) & (s_a == -s_m)
-            right = monotone & ~left & (s_m != 0) & (s_b == -s_m)
-            empty = searching & (excluded | (monotone & (s_m != 0) & (s_a == s_m) & (s_b == s_m)))
-            bracket = searching & ~empty & (left | right)
-            tiny = searching & ~empty & ~bracket & ((r < r_min) | (level >= MAX_LEVEL))
-            split = searching & ~empty & ~bracket & ~tiny
-            # A tiny interval whose middle value cannot be told from 0 is a
-            # hit (a tangent touch or singular point, to float precision).
-            tiny_zero = tiny & (s_m == 0)
-            tiny_check = tiny & ~tiny_zero
+                conv.append(Array3f(np.ascontiguousarray(_as_n3(v, name).T)))
+        o, d = conv
+    sizes = {"o": dr.width(o), "d": dr.width(d), "t_min": _width(t_min),
+             "t_max": _width(t_max), "active": _width(active)}
+    n = max(sizes.values())
+    if min(sizes["o"], sizes["d"]) == 0:
+        n = 0
+    bad = {k: v for k, v in sizes.items() if v not in (1, n)}
+    if bad and n:
+        k = next(iter(bad))
+        other = "o" if k != "o" and sizes["o"] == n else "d"
+        raise ValueError(f"mismatched sizes: {k} has {bad[k]} rays, {other} has {n}")
+    return o, d, n
 
-            # ---- Tiny interval: F at both ends decides (two iterations) ----
-            tiny_a = mode == TINY_A
-            tiny_b = mode == TINY_B
-            s1, s2 = sgn(F_a), sgn(F)
-            tiny_root = tiny_b & (s1 != s2)
-            tiny_at_end = tiny_root & ((s1 == 0) | (s2 == 0))
-            tiny_bracket = tiny_root & ~tiny_at_end
-            tiny_none = tiny_b & ~tiny_root
 
-            # ---- Refinement: safeguarded Newton in float64 ----
-            same = sgn(F) == s_lo
-            r_lo = dr.select(refining & same, t_n, t_lo)
-            r_hi = dr.select(refining & ~same, t_n, t_hi)
-            t_next = newton(t_n, F, g, r_lo, r_hi)
-            # Where |F| / min |g| on the bracket (a proven distance to the root)
-            # is below tol, t_n is within tol already: take its Newton step
-            # kept in the bracket, never the safeguard's bisection midpoint.
-            close = (F == 0) | (dr.abs(F) < Float64(g_min) * tol)
-            t_next = dr.select(F == 0, t_n,                # t_n is the root itself
-                     dr.select(close, dr.clip(t_n - F / g, r_lo, r_hi), t_next))
-            # Converged: that, or a step below tol, or a bracket below tol.
-            conv = refining & (close | (dr.abs(t_next - t_n) < tol) | (r_hi - r_lo < tol))
+def _empty_result(Float):
+    import drjit as dr
+    Float64 = dr.float64_array_t(Float)
+    return RayResult(Float(), dr.mask_t(Float)(), dr.uint32_array_t(Float)(),
+                     dr.uint32_array_t(Float)(), dr.mask_t(Float)(), dr.mask_t(Float)(),
+                     Float64())
 
-            # ---- Transitions ----
-            lv_n, ix_n, seg_done = advance(level, idx)
-            moving_on = empty | tiny_none
-            level = dr.select(split, level + 1, dr.select(moving_on, lv_n, level))
-            idx = dr.select(split, idx << 1, dr.select(moving_on, ix_n, idx))
-            t_lo = dr.select(bracket, dr.select(left, Float64(lo), tm64),
-                             dr.select(tiny_check, Float64(lo), dr.select(refining, r_lo, t_lo)))
-            t_hi = dr.select(bracket, dr.select(left, tm64, Float64(hi)),
-                             dr.select(tiny_check, Float64(hi), dr.select(refining, r_hi, t_hi)))
-            s_lo = dr.select(bracket, dr.select(left, s_a, s_m), dr.select(tiny_bracket, s1, s_lo))
-            g_min = dr.select(bracket, dr.minimum(dr.abs(g_lo), dr.abs(g_hi)),
-                              dr.select(tiny_bracket, 0.0, g_min))
-            F_a = dr.select(tiny_a, F, F_a)
-            t_n = dr.select(bracket, newton(tm64, F, g, t_lo, t_hi),
-                  dr.select(tiny_check, t_lo,
-                  dr.select(tiny_a, t_hi,
-                  dr.select(tiny_bracket, 0.5 * (t_lo + t_hi),
-                  dr.select(refining, t_next, t_n)))))
 
-            first_hit = (tiny_zero | (any_hit & (bracket | tiny_bracket)) | tiny_at_end | conv)
-            if any_hit:
-                t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, dr.select(s1 == 0, t_lo, t_hi),
-                                    dr.select(conv, t_next, 0.5 * (t_lo + t_hi))))
-            else:
-                t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, dr.select(s1 == 0, t_lo, t_hi), t_next))
-            hit = hit | first_hit
-            unres = unres | (first_hit & (tiny_zero | tiny_at_end)) | (tiny_bracket & ~hit)
-            t_hit = dr.select(first_hit, Float(t_found), t_hit)
+# ---------------------------------------------------------------------------
+# The search
+# ---------------------------------------------------------------------------
 
-            mode = dr.select(first_hit, DONE,
-                   dr.select(bracket | tiny_bracket, REFINE,
-                   dr.select(tiny_check, TINY_A,
-                   dr.select(tiny_a, TINY_B,
-                   dr.select(moving_on, dr.select(seg_done, SEEK, SEARCH),
-                   dr.select(tiny_b, SEARCH, mode))))))
-            mode = dr.select(iters >= max_it, DONE, mode)
-            return (mode, t_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min,
-                    t_hit, hit, unres, evals, iters)
+def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
+    import drjit as dr
+    Float = type(o.x)
+    UInt32 = dr.uint32_array_t(Float)
+    Int32 = dr.int32_array_t(Float)
+    Bool = dr.mask_t(Float)
+    K = surf._kernel_data(Float)
+    m, m64, dev = K.m, K.m64, K.grid
+    Float64 = m64.Float
+    n = max(dr.width(o), dr.width(d))
+    f, ge, he = surf.local_expr, surf.g_expr, surf.h_expr
+    search_mode = surf.search
+    if search_mode == "global":
+        G_glob = Float64(dr.opaque(Float, surf.global_G()) * dr.squared_norm(d))
 
-        def z(T):
-            return dr.zeros(T, n)
-        mode0 = dr.select(active, SEEK, DONE) + z(Int32)
-        state = (mode0, Float(t_start), z(Float), z(Float), z(Int32), z(Int32),
-                 z(Float64), z(Float64), z(Float64), z(Float64), z(Int32), z(Float),
-                 dr.full(Float, math.inf, n), z(Bool), z(Bool), z(UInt32), z(UInt32))
-        out = dr.while_loop(state=state, cond=lambda mode, *_: mode != DONE, body=body,
-                            label="lgshape_search")
-        t_hit, hit, unres, evals, iters = out[12:17]
-        capped = iters >= max_it
-        hit = hit & ~capped
-        return RayResult(dr.select(hit, t_hit, math.inf), hit, evals, iters, capped, unres)
+    # ---- Rays: checked, clipped in float64, moved to the box entry ----
+    o64 = [Float64(o[i]) for i in range(3)]
+    d64 = [Float64(d[i]) for i in range(3)]
+    ok_dir = dr.isfinite(d64[0]) & dr.isfinite(d64[1]) & dr.isfinite(d64[2]) \
+        & (d64[0] * d64[0] + d64[1] * d64[1] + d64[2] * d64[2] > 0) \
+        & ~(dr.isnan(o64[0]) | dr.isnan(o64[1]) | dr.isnan(o64[2]))
+    t_start, t_end = gridmod.clip_to_box(o64, d64, K.lo, K.hi, Float64(t_min), Float64(t_max))
+    active = (Bool(active) | dr.zeros(Bool, n)) & ok_dir & (t_start <= t_end) \
+        & dr.isfinite(t_start) & dr.isfinite(t_end)
+    t_start = dr.select(active, t_start, 0.0)
+    span = Float(dr.select(active, t_end - t_start, 0.0))     # s in [0, span]
+    # The ray in local coordinates, from its box entry: u(s) = e + s d.
+    e64 = [o64[i] - K.centre[i] + t_start * d64[i] for i in range(3)]
+    e64 = [dr.select(active, e64[i], 0.0) for i in range(3)]
+    e32 = [Float(v) for v in e64]
+    g_org = [Float(e64[i] + K.grid_origin[i]) for i in range(3)]   # for the grid walk
+    d32 = [Float(dr.select(active, d[i], 0.0)) for i in range(3)]
+
+    dlen = dr.norm(Float(1.0) * type(o)(*d32))
+    dlen = dr.select(dlen > 0, dlen, 1.0)
+    cell = dr.minimum(dr.minimum(dev.cell[0], dev.cell[1]), dev.cell[2])
+    margin = 1e-3 * cell / dlen          # neighbouring segments overlap by this much
+    r_min = 1e-6 * K.diag / dlen         # minimum half width of a search interval
+    tol = Float64(1e-6 * K.diag / dlen)  # refinement tolerance in t
+    U = m64.u
+    dirs = {"dx": d64[0], "dy": d64[1], "dz": d64[2]}
+
+    def point_values(s):
+        """F and g at s in float64 with their error bounds."""
+        s = Float64(s)
+        env, err = dict(dirs), {}
+        for i, v in enumerate("xyz"):
+            sd = s * d64[i]
+            env[v] = e64[i] + sd
+            err[v] = U * (dr.abs(sd) + dr.abs(env[v]))
+        (F, eF), (g, eg) = evaluate_with_error([f, ge], env, err, m64)
+        return F, eF, g, eg
+
+    def segment_bounds(lo, hi):
+        """Float32 intervals of [F, g] (or [F, h]) over the local segment
+        u = e + [lo, hi] d, positions padded for the rounding of e and s d."""
+        env = {}
+        for i, v in enumerate("xyz"):
+            pa, pb = e32[i] + lo * d32[i], e32[i] + hi * d32[i]
+            slack = (dr.abs(e32[i]) + dr.maximum(dr.abs(lo), dr.abs(hi)) * dr.abs(d32[i])) \
+                * m.eps + m.tiny
+            env[v] = Interval(dr.minimum(pa, pb) - slack, dr.maximum(pa, pb) + slack)
+            env["d" + v] = d32[i]
+        second = ge if search_mode == "interval" else he
+        Fi, Si = evaluate_interval([f, second], env, m)
+        return Fi.lo, Fi.hi, Si.lo, Si.hi
+
+    def sign_of(lo, hi):
+        """+1 / -1 where [lo, hi] has one strict sign, else 0 (NaN: 0)."""
+        return dr.select(lo > 0, 1, dr.select(hi < 0, -1, 0))
+
+    def sign_known(F, eF):
+        """Sign of a point value outside its error bound; 0 where it cannot
+        be told from 0; 2 where F is undefined (NaN or infinite)."""
+        s_ = sign_of(F - eF, F + eF)
+        return dr.select(dr.isfinite(F), s_, 2)
+
+    def down(v):
+        """One float64 rounding of a sum, covered outward."""
+        return v - (dr.abs(v) * 2.0**-51 + 2.0**-1020)
+
+    def up(v):
+        return v + (dr.abs(v) * 2.0**-51 + 2.0**-1020)
+
+    def interval_of(level, idx, a, b):
+        w = (b - a) / Float(UInt32(1) << UInt32(level))
+        last = idx + 1 == (Int32(1) << level)
+        return a + Float(idx) * w, dr.select(last, b, a + Float(idx + 1) * w)
+
+    def advance(level, idx):
+        """The next interval to the right in the implicit binary tree."""
+        nxt = idx + 1
+        tz = dr.minimum(Int32(dr.tzcnt(UInt32(nxt))), level)
+        level, idx = level - tz, nxt >> tz
+        return level, idx, (level == 0) & (idx == 1)
+
+    def newton(t, F, g, t_lo, t_hi):
+        tn = t - F / g
+        return dr.select((tn > t_lo) & (tn < t_hi), tn, 0.5 * (t_lo + t_hi))
+
+    # One loop; each lane is in one of these modes. Every iteration takes
+    # one float64 point evaluation (F, g) and one interval evaluation.
+    SEEK, SEARCH, REFINE, TINY_A, TINY_B, DONE = range(6)
+    max_it = surf.max_iterations
+
+    def body(mode, s_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min, bounded,
+             t_hit, hit, unres, evals, iters):
+        # ---- Walk: the next occupied cell (DDA, jumping over empty space) ----
+        seek = mode == SEEK
+        found, ta, tb, stuck = gridmod.next_occupied(dev, g_org, d32, s_cur, span, seek)
+        s_cur = dr.select(seek, tb, s_cur)
+        a = dr.select(seek, dr.maximum(ta - margin, 0.0), a)
+        b = dr.select(seek, dr.minimum(tb + margin, span), b)
+        level = dr.select(seek, 0, level)
+        idx = dr.select(seek, 0, idx)
+        mode = dr.select(seek, dr.select(found & (a <= b), SEARCH, DONE), mode)
+        iters = dr.select(stuck, max_it, iters)         # a walk that cannot end is capped
+        mode = dr.select(stuck, DONE, mode)
+
+        # ---- Evaluations ----
+        searching = mode == SEARCH
+        refining = mode == REFINE
+        lo, hi = interval_of(level, idx, a, b)
+        # [tm - r, tm + r] must cover [lo, hi]: the midpoint in float64
+        # (exact), the half width rounded outward.
+        tm64 = 0.5 * (Float64(lo) + Float64(hi))
+        r = Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22)
+        t_eval = dr.select(searching, tm64, t_n)
+        F, eF, g, eg = point_values(t_eval)
+        busy = mode != DONE
+        iters = iters + dr.select(busy, 1, 0)
+        # Only searching lanes need interval bounds: a real branch skips the
+        # work where a whole SIMD packet is refining.
+        Fi_lo, Fi_hi, S_lo, S_hi = (Float64(v) for v in dr.if_stmt(
+            args=(lo, hi), cond=searching, true_fn=segment_bounds,
+            false_fn=lambda lo, hi: (Float(0), Float(0), Float(0), Float(0)),
+            label="lgshape_bounds"))
+        evals = evals + dr.select(busy, 1, 0) + dr.select(searching, 1, 0)
+
+        # ---- Search step: exclude, bracket, split (or tiny) ----
+        defined = dr.isfinite(F) & dr.isfinite(eF)
+        Fm_lo, Fm_hi = F - eF, F + eF
+        r64 = Float64(r)
+        if search_mode == "interval":
+            # Mean-value form: F(t) in F(t_m) + [g] [-r, r].
+            g_lo, g_hi = S_lo, S_hi
+            mv_lo = down(Fm_lo + dr.minimum(r64 * g_lo, -r64 * g_hi))
+            mv_hi = up(Fm_hi + dr.maximum(r64 * g_hi, -r64 * g_lo))
+            Fa = (down(Fm_lo - r64 * g_hi), up(Fm_hi - r64 * g_lo))
+            Fb = (down(Fm_lo + r64 * g_lo), up(Fm_hi + r64 * g_hi))
+        else:
+            # Second-order Taylor form with G >= |h|: the seed's |g(t_m)| > G r.
+            h_lo, h_hi = (S_lo, S_hi) if search_mode == "taylor" else (-G_glob, G_glob)
+            G = dr.maximum(dr.abs(h_lo), dr.abs(h_hi))
+            q2 = 0.5 * r64 * r64
+            gm_lo, gm_hi = g - eg, g + eg
+            ag = dr.maximum(dr.abs(gm_lo), dr.abs(gm_hi)) * r64
+            g_lo, g_hi = down(gm_lo - G * r64), up(gm_hi + G * r64)
+            mv_lo = down(Fm_lo - ag + dr.minimum(h_lo, 0) * q2)
+            mv_hi = up(Fm_hi + ag + dr.maximum(h_hi, 0) * q2)
+            Fa = (down(Fm_lo - gm_hi * r64 + h_lo * q2), up(Fm_hi - gm_lo * r64 + h_hi * q2))
+            Fb = (down(Fm_lo + gm_lo * r64 + h_lo * q2), up(Fm_hi + gm_hi * r64 + h_hi * q2))
+        # F over the interval: the natural form, narrowed by the mean-value
+        # form where F(t_m) is defined.
+        F_lo = dr.select(defined, dr.maximum(Fi_lo, mv_lo), Fi_lo)
+        F_hi = dr.select(defined, dr.minimum(Fi_hi, mv_hi), Fi_hi)
+        F_lo = dr.select(dr.isnan(F_lo), -dr.inf, F_lo)
+        F_hi = dr.select(dr.isnan(F_hi), dr.inf, F_hi)
+        excluded = (F_lo > 0) | (F_hi < 0)
+        # Monotone: g keeps one sign, with finite bounds (an unbounded g may
+        # hide a pole or the edge of f's domain).
+        monotone = defined & ((g_lo > 0) | (g_hi < 0)) & dr.isfinite(g_lo) & dr.isfinite(g_hi)
+        s_a, s_b, s_m = sign_of(*Fa), sign_of(*Fb), sign_of(Fm_lo, Fm_hi)
+        left = monotone & (s_m != 0) & (s_a == -s_m)
+        right = monotone & ~left & (s_m != 0) & (s_b == -s_m)
+        empty = searching & (excluded | (monotone & (s_m != 0) & (s_a == s_m) & (s_b == s_m)))
+        bracket = searching & ~empty & (left | right)
+        tiny = searching & ~empty & ~bracket & ((r < r_min) | (level >= MAX_LEVEL))
+        split = searching & ~empty & ~bracket & ~tiny
+        # F bounded over the tiny interval: no pole inside it.
+        is_bounded = dr.isfinite(Fi_lo) & dr.isfinite(Fi_hi)
+        # A tiny interval whose middle value is within its error bound of 0
+        # is a hit (a tangent touch or singular point, to float precision).
+        tiny_zero = tiny & defined & (s_m == 0) & is_bounded
+        tiny_check = tiny & ~tiny_zero
+
+        # ---- Tiny interval: F at both ends decides (two iterations) ----
+        tiny_a = mode == TINY_A
+        tiny_b = mode == TINY_B
+        s_here = sign_known(F, eF)
+        s1, s2 = F_a, s_here              # F_a holds the sign at the left end
+        ends_ok = tiny_b & bounded & (s1 != 2) & (s2 != 2)
+        tiny_root = ends_ok & (s1 != s2)
+        tiny_at_end = tiny_root & ((s1 == 0) | (s2 == 0))
+        tiny_bracket = tiny_root & ~tiny_at_end
+        tiny_none = tiny_b & ~tiny_root
+
+        # ---- Refine: safeguarded Newton in float64 ----
+        same = dr.select(F > 0, 1, dr.select(F < 0, -1, 0)) == s_lo
+        r_lo = dr.select(refining & same, t_n, t_lo)
+        r_hi = dr.select(refining & ~same, t_n, t_hi)
+        t_next = newton(t_n, F, g, r_lo, r_hi)
+        # Where |F| / min |g| on the bracket (a proven distance to the root)
+        # is below tol, t_n is within tol already: take its Newton step
+        # kept in the bracket, never the safeguard's bisection midpoint.
+        close = (F == 0) | (dr.abs(F) < g_min * tol)
+        t_next = dr.select(F == 0, t_n,                # t_n is the root itself
+                 dr.select(close, dr.clip(t_n - F / g, r_lo, r_hi), t_next))
+        # Converged: that, or a step below tol, or a bracket below tol.
+        conv = refining & (close | (dr.abs(t_next - t_n) < tol) | (r_hi - r_lo < tol))
+
+        # ---- Transitions ----
+        lv_n, ix_n, seg_done = advance(level, idx)
+        moving_on = empty | tiny_none
+        level = dr.select(split, level + 1, dr.select(moving_on, lv_n, level))
+        idx = dr.select(split, idx << 1, dr.select(moving_on, ix_n, idx))
+        t_lo = dr.select(bracket, dr.select(left, Float64(lo), tm64),
+                         dr.select(tiny_check, Float64(lo), dr.select(refining, r_lo, t_lo)))
+        t_hi = dr.select(bracket, dr.select(left, tm64, Float64(hi)),
+                         dr.select(tiny_check, Float64(hi), dr.select(refining, r_hi, t_hi)))
+        s_lo = dr.select(bracket, dr.select(left, s_a, s_m), dr.select(tiny_bracket, s1, s_lo))
+        g_min = dr.select(bracket, dr.minimum(dr.abs(g_lo), dr.abs(g_hi)),
+                          dr.select(tiny_bracket, 0.0, g_min))
+        bounded = dr.select(tiny_check, is_bounded, bounded)
+        F_a = dr.select(tiny_a, s_here, F_a)
+        t_n = dr.select(bracket, newton(tm64, F, g, t_lo, t_hi),
+              dr.select(tiny_check, t_lo,
+              dr.select(tiny_a, t_hi,
+              dr.select(tiny_bracket, 0.5 * (t_lo + t_hi),
+              dr.select(refining, t_next, t_n)))))
+
+        first_hit = (tiny_zero | (any_hit & (bracket | tiny_bracket)) | tiny_at_end | conv)
+        if any_hit:
+            t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, dr.select(s1 == 0, t_lo, t_hi),
+                                dr.select(conv, t_next, 0.5 * (t_lo + t_hi))))
+        else:
+            t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, dr.select(s1 == 0, t_lo, t_hi), t_next))
+        hit = hit | first_hit
+        unres = unres | (first_hit & (tiny_zero | tiny_at_end)) | (tiny_bracket & ~hit)
+        t_hit = dr.select(first_hit, t_found, t_hit)
+
+        mode = dr.select(first_hit, DONE,
+               dr.select(bracket | tiny_bracket, REFINE,
+               dr.select(tiny_check, TINY_A,
+               dr.select(tiny_a, TINY_B,
+               dr.select(moving_on, dr.select(seg_done, SEEK, SEARCH),
+               dr.select(tiny_b, SEARCH, mode))))))
+        mode = dr.select(iters >= max_it, DONE, mode)
+        return (mode, s_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min, bounded,
+                t_hit, hit, unres, evals, iters)
+
+    def z(T):
+        return dr.zeros(T, n)
+    mode0 = dr.select(active, SEEK, DONE) + z(Int32)
+    state = (mode0, z(Float), z(Float), z(Float), z(Int32), z(Int32),
+             z(Float64), z(Float64), z(Float64), z(Int32), z(Int32), z(Float64), z(Bool),
+             dr.full(Float64, math.inf, n), z(Bool), z(Bool), z(UInt32), z(UInt32))
+    out = dr.while_loop(state=state, cond=lambda mode, *_: mode != DONE, body=body,
+                        label="lgshape_search")
+    s_hit, hit, unres, evals, iters = out[13:18]
+    capped = iters >= max_it
+    hit = hit & ~capped
+    t64 = dr.select(hit, t_start + s_hit, math.inf)
+    return RayResult(Float(t64), hit, evals, iters, capped, unres, t64)

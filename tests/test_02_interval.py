@@ -82,20 +82,43 @@ def test02_segment_soundness_dhd(case, rng):
         _assert_inside(name, ilo[:, None], ihi[:, None], v)
 
 
-def test03_domain_edges_are_conservative():
-    """Division by an interval containing 0, sqrt and log of negatives give
-    infinite bounds; NaN never narrows a bound."""
+def test03_domain_edges():
+    """Division by an interval containing 0 gives infinite bounds; sqrt and
+    log enclose their defined part and give the empty marker [+inf, +inf]
+    where nothing is defined; NaN never narrows a bound; overflow keeps its
+    sign. Oracle: the closed-form ranges."""
     from lgshape import interval as iv
     m = NUMPY
-    a = Interval(np.array([1.0]), np.array([2.0]))
-    zero = Interval(np.array([-1.0]), np.array([1.0]))
-    r = iv.i_div(m, a, zero)
+    A = lambda lo, hi: Interval(np.array([lo]), np.array([hi]))  # noqa: E731
+    r = iv.i_div(m, A(1.0, 2.0), A(-1.0, 1.0))
     assert r.lo[0] == -np.inf and r.hi[0] == np.inf
+    r = iv.i_sqrt(m, A(-1.0, 4.0))
+    assert (r.lo[0], r.hi[0]) == (0.0, 2.0)
+    r = iv.i_log(m, A(-1.0, 4.0))
+    assert r.lo[0] == -np.inf and r.hi[0] == np.log(4.0)
     for op in (iv.i_sqrt, iv.i_log):
-        r = op(m, Interval(np.array([-1.0]), np.array([4.0])))
-        assert r.lo[0] == -np.inf and r.hi[0] == np.inf
-    nan = iv.pad(m, Interval(np.array([np.nan]), np.array([np.nan])))
+        r = op(m, A(-2.0, -1.0))
+        assert iv.is_empty(m, r)[0] and iv.is_empty(m, iv.pad(m, r))[0]
+    nan = iv.pad(m, A(np.nan, np.nan))
     assert nan.lo[0] == -np.inf and nan.hi[0] == np.inf
-    inf_minus_inf = iv.pad(m, iv.i_sub(m, Interval(np.array([np.inf]), np.array([np.inf])),
-                                       Interval(np.array([np.inf]), np.array([np.inf]))))
+    inf_minus_inf = iv.pad(m, iv.i_sub(m, A(np.inf, np.inf), A(np.inf, np.inf)))
     assert inf_minus_inf.lo[0] == -np.inf and inf_minus_inf.hi[0] == np.inf
+    over = iv.pad(m, A(np.inf, np.inf))        # a positive overflow stays positive
+    assert over.lo[0] > 0
+
+
+@pytest.mark.parametrize("backend", ["numpy64", "drjit32"])
+def test04_small_values_keep_their_sign(backend):
+    """exp of a very negative argument stays positive after padding, so its
+    log is finite and narrow (the float32 padding once added an absolute
+    1e-37 and made log(exp(-85)) infinite; the absolute slack left is the
+    smallest normal float, 1.2e-38). Oracle: log(exp(a)) = a."""
+    from lgshape.expr import node as N
+    m = NUMPY if backend == "numpy64" else DrJitMath(Float)
+    arr = np.asarray if backend == "numpy64" else Float
+    a = -80.0
+    e = N.log(N.exp(N.var("x") + a))
+    r = evaluate_interval(e, {"x": Interval(arr([0.0]), arr([1e-3]))}, m)
+    lo, hi = float(np.asarray(r.lo)[0]), float(np.asarray(r.hi)[0])
+    assert lo <= a and a + 1e-3 <= hi
+    assert np.isfinite(lo) and hi - lo < 1e-2

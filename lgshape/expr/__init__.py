@@ -3,9 +3,9 @@
 expression (node, parser) -> derivatives (diff) -> evaluators (evaluate)
 """
 from .diff import gradient, hessian, ray_derivatives
-from .evaluate import evaluate, evaluate_interval
+from .evaluate import evaluate, evaluate_interval, evaluate_with_error
 from .node import Expr, const, var
 from .parser import ParseError, parse
 
-__all__ = ["Expr", "ParseError", "const", "evaluate", "evaluate_interval", "gradient",
+__all__ = ["Expr", "ParseError", "const", "evaluate", "evaluate_interval", "evaluate_with_error", "gradient",
            "hessian", "parse", "ray_derivatives", "var"]

@@ -73,7 +73,44 @@ def evaluate_interval(roots, env: dict, m):
             else:
                 r = op.interval(m, *[iv.promote(m, a) for a in args], *extra)
             # Exact rules (neg, abs, min, max...) select among their inputs'
-            # bounds: nothing to round, no NaN to create.
-            memo[id(n)] = r if op.exact else iv.pad(m, r, op.transcendental)
+            # bounds: nothing to round, no NaN to create. An integer power
+            # rounds up to n times along its chain of products.
+            if not op.exact:
+                r = iv.pad(m, r, op.rounding, scale=float(n.param) if n.op == "pow" else 1.0)
+            if op.nonneg or (n.op == "pow" and n.param % 2 == 0):
+                r = iv.nonneg(m, r)
+            memo[id(n)] = r
     out = [iv.promote(m, memo[id(r)]) for r in roots]
+    return out[0] if single else out
+
+
+def evaluate_with_error(roots, env: dict, env_error: dict, m):
+    """Point values of ``roots`` with bounds on their rounding error.
+
+    ``env`` gives the computed variable values, ``env_error`` bounds on
+    their errors (absolute; a missing name is exact). Returns a list of
+    ``(value, error)`` pairs: |exact root at the exact inputs - value| <=
+    error, by the op table's point-error rules (:mod:`lgshape.pointerror`).
+    ``m`` must provide ``u`` (unit roundoff) and ``eps_t``."""
+    single = isinstance(roots, Expr)
+    roots = [roots] if single else list(roots)
+    val, err = {}, {}
+    with m.errstate():
+        for n in topological(roots):
+            if n.op == "const":
+                val[id(n)], err[id(n)] = m.const(n.param), 0.0
+                continue
+            if n.op == "var":
+                val[id(n)] = _lookup(env, n.param)
+                err[id(n)] = env_error.get(n.param, 0.0)
+                continue
+            op = OPS[n.op]
+            args = [val[id(a)] for a in n.args]
+            errs = [err[id(a)] for a in n.args]
+            extra = (n.param,) if n.op == "pow" else ()
+            v = op.value(m, *args, *extra)
+            val[id(n)] = v
+            err[id(n)] = op.error(m, v, *args, *errs, *extra)
+    from ..pointerror import SAFETY
+    out = [(val[id(r)], err[id(r)] * SAFETY) for r in roots]
     return out[0] if single else out
