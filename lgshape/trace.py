@@ -25,7 +25,9 @@ zero, or is proven to touch it (|F| within its rounding error bound of 0):
   interval is unbounded) is not a root;
 - a sign change across a gap where f is undefined is not a root (the
   derivative is unbounded at the edge of a domain, so the monotonicity test
-  never spans the gap, and the ends must both be defined);
+  never spans the gap, and the ends must both be defined); where one end of
+  a smallest interval is undefined, a root between the domain's edge and
+  the defined end is looked for by bisecting towards the edge (``EDGE``);
 - an f that is NaN or infinite at every sampled point of its box is refused
   at construction (:class:`Surface`).
 
@@ -504,7 +506,7 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
 
     # One loop; each lane is in one of these modes. Every iteration takes
     # one float64 point evaluation (F, g) and one interval evaluation.
-    SEEK, SEARCH, REFINE, TINY_A, TINY_B, DONE = range(6)
+    SEEK, SEARCH, REFINE, TINY_A, TINY_B, EDGE, DONE = range(7)
     max_it = surf.max_iterations
 
     def body(mode, s_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min, bounded,
@@ -595,9 +597,29 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
         s1, s2 = F_a, s_here              # F_a holds the sign at the left end
         ends_ok = tiny_b & bounded & (s1 != 2) & (s2 != 2)
         tiny_root = ends_ok & (s1 != s2)
-        tiny_at_end = tiny_root & ((s1 == 0) | (s2 == 0))
+        # One end outside f's domain: the root may lie between the domain's
+        # edge and the defined end; the edge search below looks there.
+        one_end = tiny_b & bounded & ((s1 == 2) != (s2 == 2))
+        s_def = dr.select(s1 == 2, s2, s1)
+        edge_at_end = one_end & (s_def == 0)
+        tiny_at_end = (tiny_root & ((s1 == 0) | (s2 == 0))) | edge_at_end
         tiny_bracket = tiny_root & ~tiny_at_end
-        tiny_none = tiny_b & ~tiny_root
+        edge_start = one_end & ~edge_at_end
+        tiny_none = tiny_b & ~tiny_root & ~one_end
+
+        # ---- Edge of the domain: bisect towards it, watching the sign ----
+        # [t_lo, t_hi] has one defined end (F_a: +1 the left one, -1 the
+        # right one) of sign s_lo; each step looks at the middle t_n.
+        edge = mode == EDGE
+        left_def = F_a > 0
+        edge_zero = edge & (s_here == 0)
+        edge_bracket = edge & (s_here != 2) & (s_here != 0) & (s_here != s_lo)
+        undef_to_mid = edge & (s_here == 2)
+        def_to_mid = edge & (s_here == s_lo)
+        e_lo = dr.select((undef_to_mid & ~left_def) | (def_to_mid & left_def), t_n, t_lo)
+        e_hi = dr.select((undef_to_mid & left_def) | (def_to_mid & ~left_def), t_n, t_hi)
+        edge_none = (undef_to_mid | def_to_mid) & ((e_hi - e_lo < 1e-4 * tol)
+                                                   | (t_n <= t_lo) | (t_n >= t_hi))
 
         # ---- Refine: safeguarded Newton in float64 ----
         same = dr.select(F > 0, 1, dr.select(F < 0, -1, 0)) == s_lo
@@ -615,40 +637,54 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
 
         # ---- Transitions ----
         lv_n, ix_n, seg_done = advance(level, idx)
-        moving_on = empty | tiny_none
+        moving_on = empty | tiny_none | edge_none
         level = dr.select(split, level + 1, dr.select(moving_on, lv_n, level))
         idx = dr.select(split, idx << 1, dr.select(moving_on, ix_n, idx))
+        # an edge bracket lies between the middle and the defined end
+        eb_lo = dr.select(left_def, t_lo, t_n)
+        eb_hi = dr.select(left_def, t_n, t_hi)
         t_lo = dr.select(bracket, dr.select(left, Float64(lo), tm64),
-                         dr.select(tiny_check, Float64(lo), dr.select(refining, r_lo, t_lo)))
+               dr.select(tiny_check, Float64(lo),
+               dr.select(refining, r_lo,
+               dr.select(edge_bracket, eb_lo, dr.select(edge, e_lo, t_lo)))))
         t_hi = dr.select(bracket, dr.select(left, tm64, Float64(hi)),
-                         dr.select(tiny_check, Float64(hi), dr.select(refining, r_hi, t_hi)))
-        s_lo = dr.select(bracket, dr.select(left, s_a, s_m), dr.select(tiny_bracket, s1, s_lo))
+               dr.select(tiny_check, Float64(hi),
+               dr.select(refining, r_hi,
+               dr.select(edge_bracket, eb_hi, dr.select(edge, e_hi, t_hi)))))
+        s_lo = dr.select(bracket, dr.select(left, s_a, s_m),
+               dr.select(tiny_bracket, s1,
+               dr.select(edge_start, s_def,
+               dr.select(edge_bracket & ~left_def, s_here, s_lo))))
         g_min = dr.select(bracket, dr.minimum(dr.abs(g_lo), dr.abs(g_hi)),
-                          dr.select(tiny_bracket, 0.0, g_min))
+                          dr.select(tiny_bracket | edge_bracket, 0.0, g_min))
         bounded = dr.select(tiny_check, is_bounded, bounded)
-        F_a = dr.select(tiny_a, s_here, F_a)
+        F_a = dr.select(tiny_a, s_here, dr.select(edge_start, dr.select(s1 == 2, -1, 1), F_a))
         t_n = dr.select(bracket, newton(tm64, F, g, t_lo, t_hi),
               dr.select(tiny_check, t_lo,
               dr.select(tiny_a, t_hi,
-              dr.select(tiny_bracket, 0.5 * (t_lo + t_hi),
+              dr.select(tiny_bracket | edge_bracket | edge_start | edge, 0.5 * (t_lo + t_hi),
               dr.select(refining, t_next, t_n)))))
 
-        first_hit = (tiny_zero | (any_hit & (bracket | tiny_bracket)) | tiny_at_end | conv)
+        new_bracket = tiny_bracket | edge_bracket
+        first_hit = (tiny_zero | edge_zero | (any_hit & (bracket | new_bracket)) | tiny_at_end | conv)
+        at_end = dr.select(s1 == 0, t_lo, t_hi)          # (t_lo, t_hi: the tiny interval's ends)
         if any_hit:
-            t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, dr.select(s1 == 0, t_lo, t_hi),
-                                dr.select(conv, t_next, 0.5 * (t_lo + t_hi))))
+            t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, at_end,
+                      dr.select(edge_zero, t_n, dr.select(conv, t_next, 0.5 * (t_lo + t_hi)))))
         else:
-            t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, dr.select(s1 == 0, t_lo, t_hi), t_next))
+            t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, at_end,
+                      dr.select(edge_zero, t_n, t_next)))
         hit = hit | first_hit
-        unres = unres | (first_hit & (tiny_zero | tiny_at_end)) | (tiny_bracket & ~hit)
+        unres = unres | (first_hit & (tiny_zero | tiny_at_end | edge_zero)) | (new_bracket & ~hit)
         t_hit = dr.select(first_hit, t_found, t_hit)
 
         mode = dr.select(first_hit, DONE,
-               dr.select(bracket | tiny_bracket, REFINE,
+               dr.select(bracket | new_bracket, REFINE,
                dr.select(tiny_check, TINY_A,
                dr.select(tiny_a, TINY_B,
+               dr.select(edge_start, EDGE,
                dr.select(moving_on, dr.select(seg_done, SEEK, SEARCH),
-               dr.select(tiny_b, SEARCH, mode))))))
+               dr.select(tiny_b, SEARCH, mode)))))))
         mode = dr.select(iters >= max_it, DONE, mode)
         return (mode, s_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min, bounded,
                 t_hit, hit, unres, evals, iters)
