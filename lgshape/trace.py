@@ -454,6 +454,10 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
             sd = s * d64[i]
             env[v] = e64[i] + sd
             err[v] = U * (dr.abs(sd) + dr.abs(env[v]))
+        if search_mode == "interval":
+            # g's point value only steers Newton: no error bound needed.
+            F, eF = evaluate_with_error(f, env, err, m64)
+            return F, eF, evaluate(ge, env, m64), None
         (F, eF), (g, eg) = evaluate_with_error([f, ge], env, err, m64)
         return F, eF, g, eg
 
