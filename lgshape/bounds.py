@@ -50,10 +50,11 @@ def segment_interval(e, o, d, a, b, m) -> Interval:
     """Interval of expression e (in x, y, z, dx, dy, dz; or a list of them)
     over the ray segment o + [a, b] d. With a = b it encloses the exact value
     at that point of the ray, rounding included."""
-    from .interval import pad
     env = {}
     for i, v in enumerate("xyz"):
         pa, pb = o[i] + a * d[i], o[i] + b * d[i]
-        env[v] = pad(m, Interval(m.minimum(pa, pb), m.maximum(pa, pb)))
+        # the rounding of o + t d is relative to |o| + |t d|, not to the sum
+        slack = (m.abs(o[i]) + m.maximum(m.abs(a), m.abs(b)) * m.abs(d[i])) * m.eps + m.tiny
+        env[v] = Interval(m.minimum(pa, pb) - slack, m.maximum(pa, pb) + slack)
         env["d" + v] = d[i]
     return evaluate_interval(e, env, m)

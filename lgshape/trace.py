@@ -74,7 +74,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import grid as gridmod
+from . import bounds, grid as gridmod
 from .arraymath import NUMPY, DrJitMath
 from .expr import (Expr, evaluate, evaluate_interval, evaluate_with_error, gradient,
                    hessian, parse, ray_derivatives)
@@ -253,7 +253,6 @@ class Surface:
 
     def global_G(self) -> float:
         """G for unit directions: the hand-given one, else the Hessian norm over the box."""
-        from . import bounds
         if self.G_hand is not None:
             return self.G_hand
         return float(bounds.hessian_norm(self.expr, self.lo[None], self.hi[None])[0])
@@ -463,16 +462,9 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
 
     def segment_bounds(lo, hi):
         """Float32 intervals of [F, g] (or [F, h]) over the local segment
-        u = e + [lo, hi] d, positions padded for the rounding of e and s d."""
-        env = {}
-        for i, v in enumerate("xyz"):
-            pa, pb = e32[i] + lo * d32[i], e32[i] + hi * d32[i]
-            slack = (dr.abs(e32[i]) + dr.maximum(dr.abs(lo), dr.abs(hi)) * dr.abs(d32[i])) \
-                * m.eps + m.tiny
-            env[v] = Interval(dr.minimum(pa, pb) - slack, dr.maximum(pa, pb) + slack)
-            env["d" + v] = d32[i]
+        u = e + [lo, hi] d."""
         second = ge if search_mode == "interval" else he
-        Fi, Si = evaluate_interval([f, second], env, m)
+        Fi, Si = bounds.segment_interval([f, second], e32, d32, lo, hi, m)
         return Fi.lo, Fi.hi, Si.lo, Si.hi
 
     def sign_of(lo, hi):
