@@ -6,8 +6,11 @@ is *defined* (not NaN). Where f is NaN there is no surface (see
 :mod:`lgshape.trace`), so values at undefined points need no enclosing: sqrt
 and log of an interval reaching below 0 enclose the defined part
 (``sqrt([-1, 4]) = [0, 2]``), and an op defined nowhere on its input returns
-the empty marker ``[+inf, +inf]`` (any interval is valid there; this one
-keeps f's interval away from 0, so the region is excluded). The derivative of
+the empty interval ``[+inf, -inf]``. Every op is undefined where an argument
+is (NaN propagates through every value rule, min and max included), so the
+evaluators make a node empty wherever an argument is (:func:`is_empty`),
+and an f undefined on a whole region has an empty interval there: the
+region is excluded. The derivative of
 such an op is unbounded at the domain's edge (``1 / (2 sqrt u)`` with u
 reaching 0), so a mean-value bound is never taken across an undefined gap.
 
@@ -19,7 +22,7 @@ an integer power by n multiplications; see :mod:`lgshape.arraymath` for the
 values. Ops whose results are never negative (sqrt, exp, even powers) are
 clamped at 0 after padding. A NaN bound (from ``inf - inf``, ``0 * inf``) is
 turned into an infinite one in :func:`pad`, so a NaN never narrows a result;
-a lower bound of +inf (overflow of a positive value, or the empty marker)
+a lower bound of +inf (overflow of a positive value, or an empty interval)
 stays +inf and an upper bound of -inf stays -inf: overflow is rounded to
 nearest, so the exact value lies beyond the largest float. Division by an
 interval that contains 0 gives infinite bounds.
@@ -78,8 +81,13 @@ def promote(m, v) -> Interval:
 
 
 def is_empty(m, r: Interval):
-    """True where r is the empty marker (an op defined nowhere on its input)."""
-    return (r.lo == math.inf) & (r.hi == math.inf)
+    """True where r is empty (lo > hi: an op defined nowhere on its input)."""
+    return r.lo > r.hi
+
+
+def emptied(m, r: Interval, empty) -> Interval:
+    """r, made empty where ``empty`` holds."""
+    return Interval(m.select(empty, math.inf, r.lo), m.select(empty, -math.inf, r.hi))
 
 
 def i_add(m, a, b):
@@ -125,10 +133,9 @@ def i_pow(m, a, n: int):
 
 
 def i_sqrt(m, a):
-    """sqrt over the defined part of a; the empty marker where a < 0 throughout."""
-    nowhere = a.hi < 0
-    return Interval(m.select(nowhere, math.inf, m.sqrt(m.maximum(a.lo, 0.0))),
-                    m.select(nowhere, math.inf, m.sqrt(m.maximum(a.hi, 0.0))))
+    """sqrt over the defined part of a; empty where a < 0 throughout."""
+    return emptied(m, Interval(m.sqrt(m.maximum(a.lo, 0.0)), m.sqrt(m.maximum(a.hi, 0.0))),
+                   a.hi < 0)
 
 
 def i_exp(m, a):
@@ -136,11 +143,10 @@ def i_exp(m, a):
 
 
 def i_log(m, a):
-    """log over the defined part of a (log 0 = -inf); the empty marker where
-    a < 0 throughout."""
-    nowhere = a.hi < 0
-    return Interval(m.select(nowhere, math.inf, m.log(m.maximum(a.lo, 0.0))),
-                    m.select(nowhere, math.inf, m.log(m.maximum(a.hi, 0.0))))
+    """log over the defined part of a (log 0 = -inf); empty where a < 0
+    throughout."""
+    return emptied(m, Interval(m.log(m.maximum(a.lo, 0.0)), m.log(m.maximum(a.hi, 0.0))),
+                   a.hi < 0)
 
 
 def _periodic(m, a, f, peak: float):

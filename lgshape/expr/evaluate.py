@@ -52,6 +52,7 @@ def evaluate_interval(roots, env: dict, m):
     single = isinstance(roots, Expr)
     roots = [roots] if single else list(roots)
     memo = {}
+    maybe_empty = set()      # nodes below a sqrt or log: empty where undefined
     with m.errstate():
         for n in topological(roots):
             if n.op == "const":
@@ -79,6 +80,15 @@ def evaluate_interval(roots, env: dict, m):
                 r = iv.pad(m, r, op.rounding, scale=float(n.param) if n.op == "pow" else 1.0)
             if op.nonneg or (n.op == "pow" and n.param % 2 == 0):
                 r = iv.nonneg(m, r)
+            # Undefined where an argument is: empty propagates.
+            below = [a for a in n.args if id(a) in maybe_empty]
+            if below:
+                e = iv.is_empty(m, memo[id(below[0])])
+                for a in below[1:]:
+                    e = e | iv.is_empty(m, memo[id(a)])
+                r = iv.emptied(m, r, e)
+            if below or n.op in ("sqrt", "log"):
+                maybe_empty.add(id(n))
             memo[id(n)] = r
     out = [iv.promote(m, memo[id(r)]) for r in roots]
     return out[0] if single else out
