@@ -111,8 +111,10 @@ class Rays:
         from drjit.llvm.ad import Array3f
         self.o, self.d, self.t_min = np.asarray(o, np.float32), np.asarray(d, np.float32), t_min
         self.o_dr, self.d_dr = Array3f(self.o.T.copy()), Array3f(self.d.T.copy())
-        # Mitsuba's rays have no t_min: start them t_min further along.
-        o_off = (self.o + np.float32(t_min) * self.d).astype(np.float32)
+        # Mitsuba's rays have no t_min: start them t_min further along (not
+        # at all where t_min = 0: 0 * inf would turn an origin into NaN).
+        with np.errstate(invalid="ignore", over="ignore"):
+            o_off = self.o if t_min == 0 else (self.o + np.float32(t_min) * self.d).astype(np.float32)
         self.ray = mi.Ray3f(mi.Point3f(o_off.T.copy()), mi.Vector3f(self.d.T.copy()))
         dr.eval(self.o_dr, self.d_dr, self.ray)
 
@@ -121,9 +123,12 @@ class Rays:
 
 
 def _read_ray_result(out):
-    t, hit, evals, capped = (np.asarray(v) for v in out)
-    return {"t": t.astype(np.float64), "hit": hit.astype(bool),
-            "evals": evals.astype(np.float64), "capped": capped.astype(bool)}
+    t, hit, evals, capped = (np.asarray(v) for v in out[:4])
+    res = {"t": t.astype(np.float64), "hit": hit.astype(bool),
+           "evals": evals.astype(np.float64), "capped": capped.astype(bool)}
+    if len(out) > 4:                    # lgshape's float64 t (RayResult.t64)
+        res["t64"] = np.asarray(out[4]).astype(np.float64)
+    return res
 
 
 def _f_normals(surf, rays):
@@ -143,8 +148,9 @@ def global_L(spec) -> float:
     return float(bounds.lipschitz(spec.expr, lo, hi)[0])
 
 
-def lgshape_runner(spec, rays, mode, depth):
-    """``mode``: a search mode, or ``"seed"`` (global L pruning and global G)."""
+def lgshape_runner(spec, rays, mode, depth, t64=False):
+    """``mode``: a search mode, or ``"seed"`` (global L pruning and global G).
+    ``t64``: also return the float64 t (for cases judged on it)."""
     import lgshape
     t0 = time.perf_counter()
     if mode == "seed":
@@ -158,7 +164,7 @@ def lgshape_runner(spec, rays, mode, depth):
 
     def run():
         r = surf.trace(rays.o_dr, rays.d_dr, t_min=rays.t_min)
-        return r.t, r.hit, r.evals, r.capped
+        return (r.t, r.hit, r.evals, r.capped) + ((r.t64,) if t64 else ())
     return Runner(method, setting, run, _read_ray_result, _f_normals(surf, rays),
                   int(surf.memory_bytes), build)
 
@@ -170,11 +176,12 @@ def _plain_surface(spec):
     return lgshape.Surface(spec, depth=2)
 
 
-def sphere_runner(spec, rays, eps, relax):
+def sphere_runner(spec, rays, eps, relax, L=None):
+    """``L``: a known valid Lipschitz bound (else interval arithmetic's)."""
     from . import baselines
     t0 = time.perf_counter()
     surf = _plain_surface(spec)
-    L = global_L(spec)
+    L = global_L(spec) if L is None else L
     build = time.perf_counter() - t0
     eps_t = eps * surf.diagonal
 
@@ -204,7 +211,9 @@ def sample_grid(spec, res):
     res^3 vertices spanning the box, indexed [z, y, x]: what sdfgrid and
     marching cubes are fed. Dividing by |grad f| keeps every sign, and so the
     topology the samples see, and halves their depth error against raw f.
-    Where grad f vanishes the divisor is floored at 1e-6 of its maximum."""
+    Where grad f vanishes the divisor is floored at 1e-6 of its largest
+    finite value; where it is undefined (NaN, e.g. the 0 / 0 of sqrt's
+    derivative inside an exact SDF) while f is defined, f is taken as is."""
     from .expr import evaluate, gradient
     lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
     ax = [np.linspace(lo[i], hi[i], res) for i in range(3)]
@@ -216,7 +225,10 @@ def sample_grid(spec, res):
         v = [np.broadcast_to(e, X.shape) for e in evaluate(exprs, {"x": X, "y": Y, "z": Z})]
         f[k:k + slab] = v[0]
         gn[k:k + slab] = np.sqrt(v[1]**2 + v[2]**2 + v[3]**2)
-    return f / np.maximum(gn, 1e-6 * gn.max() + 1e-300)
+    fin = np.isfinite(gn)
+    top = gn[fin].max() if fin.any() else 1.0
+    gn = np.where(np.isnan(gn) & np.isfinite(f), 1.0, gn)
+    return f / np.maximum(gn, 1e-6 * top + 1e-300)
 
 
 class Samples:
@@ -326,14 +338,32 @@ def runners(spec, rays, cfg: Config):
         yield lambda samples=samples: mesh_runner(spec, rays, samples)
 
 
-def stability_runners(spec, rays, cfg: Config):
-    """The methods of the stability suite: one representative setting each."""
+def _seed_runner(spec, rays):
+    """The seed's setting, or, where f has no finite global L over its box
+    (a pole, a sqrt at the edge of its domain), a record of its refusal: no
+    hits, no ray capped, and the reason in ``note``."""
+    try:
+        return lgshape_runner(spec, rays, "seed", 6, t64=True)
+    except ValueError as err:
+        n = len(rays.o)
+
+        def read(out):
+            return {"t": np.full(n, np.inf), "hit": np.zeros(n, bool), "evals": None,
+                    "capped": np.zeros(n, bool)}
+        return Runner("lgshape_global", "global L and G, depth 6", lambda: (), read,
+                      lambda t: np.full((n, 3), np.nan), 0, 0.0, {"note": f"refused: {err}"})
+
+
+def stability_runners(spec, rays, cfg: Config, L=None):
+    """The methods of the stability suite: one representative setting each
+    (``L``: a known Lipschitz bound for sphere tracing, see
+    :attr:`stability.Case.lipschitz`)."""
     samples = Samples(spec, cfg.stability_grid)
-    yield lambda: lgshape_runner(spec, rays, "interval", 6)
-    yield lambda: lgshape_runner(spec, rays, "taylor", 6)
-    yield lambda: lgshape_runner(spec, rays, "seed", 6)
-    yield lambda: sphere_runner(spec, rays, 1e-5, 1.0)
-    yield lambda: sphere_runner(spec, rays, 1e-5, 1.6)
+    yield lambda: lgshape_runner(spec, rays, "interval", 6, t64=True)
+    yield lambda: lgshape_runner(spec, rays, "taylor", 6, t64=True)
+    yield lambda: _seed_runner(spec, rays)
+    yield lambda: sphere_runner(spec, rays, 1e-5, 1.0, L)
+    yield lambda: sphere_runner(spec, rays, 1e-5, 1.6, L)
     yield lambda: march_runner(spec, rays, 256)
     yield lambda: sdfgrid_runner(spec, rays, samples)
     yield lambda: mesh_runner(spec, rays, samples)
@@ -436,26 +466,39 @@ def bench_surface(name, cfg: Config, log):
     return records
 
 
-def bench_stability(cfg: Config, log):
-    """Stability records, and a note per case (its description and oracle)."""
+def bench_stability(cfg: Config, log, groups=stability.GROUPS):
+    """Stability records, and a note per case (its group, description and
+    oracle). Cases with ``judge_t64`` judge lgshape on its float64 t64 (the
+    others have only their float32 t)."""
     out, notes = [], []
-    for case in stability.cases(scale=cfg.stability_scale):
-        notes.append({"case": case.name, "description": case.description, "oracle": case.oracle,
-                      "rays": len(case.o), "tangent": int(case.tangent.sum()), "t_min": case.t_min})
+    for case in stability.cases(scale=cfg.stability_scale, groups=groups):
+        notes.append({"case": case.name, "group": case.group, "description": case.description,
+                      "oracle": case.oracle, "rays": len(case.o),
+                      "tangent": int(case.tangent.sum()), "t_min": case.t_min,
+                      "judge_t64": case.judge_t64, "tolerance": case.tolerance})
         rays = Rays(case.o, case.d, case.t_min)
-        for make in stability_runners(case.surface, rays, cfg):
+        for make in stability_runners(case.surface, rays, cfg, case.lipschitz):
             runner = make()
+            if runner.method in case.skip:
+                out.append({"case": case.name, "group": case.group, "method": runner.method,
+                            "setting": runner.setting, "missed": None, "false_hits": None,
+                            "capped": None, "nans": None, "tangent_excluded": int(case.tangent.sum()),
+                            "rays": len(case.o), "judged_on": None,
+                            "note": f"not run: {case.skip[runner.method]}"})
+                continue
             res, _ = timed(runner, 0)
-            t = np.where(res["hit"], res["t"], np.inf)
+            on64 = case.judge_t64 and "t64" in res
+            t = np.where(res["hit"], res["t64"] if on64 else res["t"], np.inf)
             verdict = stability.judge(case, t, res["hit"], runner.normals(t))
             capped = None if res["capped"] is None else int(res["capped"].sum())
-            out.append({"case": case.name, "method": runner.method, "setting": runner.setting,
-                        "missed": verdict["missed"], "false_hits": verdict["false_hits"],
-                        "capped": capped, "nans": verdict["nans"],
-                        "tangent_excluded": verdict["tangent"], "rays": verdict["rays"],
-                        **{k: v for k, v in runner.extra.items() if k == "lipschitz_L"}})
+            out.append({"case": case.name, "group": case.group, "method": runner.method,
+                        "setting": runner.setting, "missed": verdict["missed"],
+                        "false_hits": verdict["false_hits"], "capped": capped,
+                        "nans": verdict["nans"], "tangent_excluded": verdict["tangent"],
+                        "rays": verdict["rays"], "judged_on": "t64" if on64 else "t",
+                        **{k: v for k, v in runner.extra.items() if k in ("lipschitz_L", "note")}})
         log(f"stability {case.name}: " + ", ".join(
-            f"{r['method']}[{r['setting']}] {r['missed']}/{r['false_hits']}"
+            f"{r['method']}[{r['setting']}] {r['missed']}/{r['false_hits']}/{r['capped']}"
             for r in out if r["case"] == case.name))
     return out, notes
 
@@ -722,25 +765,50 @@ def report(results, command, written) -> str:
              f"has a root and the method reports none or one more than "
              f"{stability.TOLERANCE:g} diagonals beyond it (capped rays with a root count as "
              "missed too); a false hit is a hit with no root there. Tangent rays (either answer "
-             "is right) are excluded from both counts and listed.\n")
+             "is right) are excluded from both counts and listed. `(refused)`: the method "
+             "cannot be built for that f (the seed's global L or G is infinite) and reports "
+             "no hit; `(no geometry)`: the grid samples have no sign change; `not run`: the "
+             "method would not end on those rays (the case says why).\n")
     keys = list(dict.fromkeys((r["method"], r["setting"]) for r in stab))
-    L.append("| case | rays (tangent) | " + " | ".join(f"{m}<br>{s}" for m, s in keys) + " |")
-    L.append("|---|---|" + "---|" * len(keys))
-    for case in dict.fromkeys(r["case"] for r in stab):
-        rows = {(r["method"], r["setting"]): r for r in stab if r["case"] == case}
-        first = next(iter(rows.values()))
-        cells = []
-        for k in keys:
-            r = rows.get(k)
-            cells.append("" if r is None else
-                         f"{r['missed']} / {r['false_hits']} / {_fmt(r['capped'])} / {r['nans']}")
-        L.append(f"| {case} | {first['rays']} ({first['tangent_excluded']}) | "
-                 + " | ".join(cells) + " |")
-    L.append("")
-    for c in results["cases"]:
-        L.append(f"- **{c['case']}** ({c['rays']} rays, {c['tangent']} tangent): "
-                 f"{c['description']}. Oracle: {c['oracle']}.")
-    L.append("")
+    notes = results["cases"]
+    for group in dict.fromkeys(c.get("group", stability.FEATURES) for c in notes):
+        in_group = [c for c in notes if c.get("group", stability.FEATURES) == group]
+        L.append(f"### {group}\n")
+        if group == stability.DOMAIN:
+            L.append("f scaled by 1e-30 to 1e30, fast-growing f, f undefined in part of its "
+                     "box (a pole, domain edges, an undefined gap), signed-distance primitives "
+                     "built with min / max / abs / sqrt, geometry far from the origin, and "
+                     "degenerate rays. Where a case is marked (t64), lgshape is judged on its "
+                     "float64 t (`RayResult.t64`, the search's answer before rounding to "
+                     "Mitsuba's float32 t) and the other methods on their float32 t.\n")
+        L.append("| case | rays (tangent) | " + " | ".join(f"{m}<br>{s}" for m, s in keys)
+                 + " |")
+        L.append("|---|---|" + "---|" * len(keys))
+        for c in in_group:
+            rows = {(r["method"], r["setting"]): r for r in stab if r["case"] == c["case"]}
+            if not rows:
+                continue
+            first = next(iter(rows.values()))
+            cells = []
+            for k in keys:
+                r = rows.get(k)
+                note = (r or {}).get("note") or ""
+                if r is None:
+                    cells.append("")
+                elif note.startswith("not run"):
+                    cells.append("not run")
+                else:
+                    cells.append(f"{r['missed']} / {r['false_hits']} / {_fmt(r['capped'])} / "
+                                 f"{r['nans']}" + ("<br>(refused)" if note.startswith("refused")
+                                                   else "<br>(no geometry)" if note else ""))
+            mark = " (t64)" if c.get("judge_t64") else ""
+            L.append(f"| {c['case']}{mark} | {first['rays']} ({first['tangent_excluded']}) | "
+                     + " | ".join(cells) + " |")
+        L.append("")
+        for c in in_group:
+            L.append(f"- **{c['case']}** ({c['rays']} rays, {c['tangent']} tangent): "
+                     f"{c['description']}. Oracle: {c['oracle']}.")
+        L.append("")
 
     L.append("## All records\n")
     L.append("Depth errors in box diagonals; `–` where a figure has no meaning (no evaluations "

@@ -19,21 +19,38 @@ compares a method's answer with it:
   before the touching point, or when the reference has a root within a
   factor 2 of ``t_min`` (float32 rounding of the origin decides there).
 
-The cases (:func:`cases`): needle-thin spikes, rays grazing silhouettes,
-tangent rays, rays through and beside singular points (a cone apex, the
-nodes of Kummer's quartic), a steep wall, origins on the surface and a very
-thin shell. Only numpy here; the bench runs the methods.
+The cases (:func:`cases`) come in two groups (:data:`GROUPS`):
+
+- *thin features, tangents and singular points*: needle-thin spikes, rays
+  grazing silhouettes, tangent rays, rays through and beside singular points
+  (a cone apex, the nodes of Kummer's quartic), a steep wall, origins on the
+  surface and a very thin shell;
+- *domain and scale*: f scaled by 1e-30 to 1e30, fast-growing f (exp(50 x),
+  x^200), partly undefined f (a sqrt height field, a pole, a log domain edge,
+  a sign change across an undefined gap), signed-distance primitives built
+  with min / max / abs / sqrt (box, rounded box, capsule, capped cylinder,
+  smooth unions), spheres far from the origin, and degenerate rays (zero,
+  infinite or NaN direction, NaN or infinite origin). Their oracles are
+  closed-form wherever one exists (ray / plane, sphere, slab, cylinder, and
+  the union of those pieces for a capsule or a rounded box), otherwise a
+  float64 scan whose step is given with the case.
+
+A case may judge lgshape on its float64 ``t64`` (:attr:`Case.judge_t64`)
+where the float32 t cannot carry the tolerance (its ulp(t) / 2 is larger):
+the verdict is then about the search, and the case says so. Only numpy here;
+the bench runs the methods.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .expr import evaluate, gradient, hessian, parse
+from .expr import evaluate, gradient, hessian, parse, var
+from .expr.node import exp, log, maximum, minimum, sqrt
 from .reference import clip_to_box, first_sign_change, polynomial_roots
-from .surfaces import SPIKE_AXES, Implicit, kummer, spikes, torus
+from .surfaces import SPIKE_AXES, Implicit, kummer, sphere, spikes, torus
 
 #: Degree of the algebraic library surfaces (their f is a polynomial): the
 #: reference for them is exact polynomial roots.
@@ -45,6 +62,11 @@ TOLERANCE = 1e-2
 
 #: A complex root counts as real when |Im t| is below this (in diagonals).
 REAL_ROOT = 1e-6
+
+#: The case groups, in the report's order.
+FEATURES = "Thin features, tangents and singular points"
+DOMAIN = "Domain and scale"
+GROUPS = (FEATURES, DOMAIN)
 
 
 @dataclass
@@ -59,6 +81,11 @@ class Case:
     t_ref: np.ndarray        # (n,) float64 nearest root beyond t_min, inf where none
     tangent: np.ndarray      # (n,) bool: either answer is right
     oracle: str
+    group: str = FEATURES
+    judge_t64: bool = False  # lgshape judged on its float64 t64 (the search)
+    tolerance: float = TOLERANCE   # depth tolerance, in box diagonals
+    lipschitz: float | None = None  # a known valid L for sphere tracing (exact SDFs: 1)
+    skip: dict = field(default_factory=dict)   # method -> why it is not run
 
     @property
     def diagonal(self) -> float:
@@ -114,7 +141,7 @@ def judge(case: Case, t, hit, normals=None) -> dict:
     the module text); ``normals`` (n, 3) at the hits, if the method has them."""
     t = np.asarray(t, np.float64)
     hit = np.asarray(hit, bool)
-    tol = TOLERANCE * case.diagonal
+    tol = case.tolerance * case.diagonal
     judged = ~case.tangent
     has = np.isfinite(case.t_ref)
     t_hit = np.where(hit, t, np.inf)
@@ -310,12 +337,599 @@ def thin_shell(rng, n=300, eps=1e-4):
                  "from random directions (some rays miss the ball)", spec, o, aim - o, degree=4)
 
 
+# ---- Domain and scale: closed-form oracles ----------------------------------
+
+def _ray_ball(o, d, c, r):
+    """Entry and exit t of the ball |p - c| <= r along o + t d (float64;
+    NaN where the line misses it). From the closest approach, so that far
+    origins lose no precision to cancellation."""
+    oc = o - np.asarray(c, np.float64)
+    dd = np.sum(d * d, 1)
+    tc = -np.sum(oc * d, 1) / dd
+    m = oc + tc[:, None] * d
+    disc = r * r - np.sum(m * m, 1)
+    with np.errstate(invalid="ignore"):
+        h = np.sqrt(disc / dd)
+    return np.where(disc >= 0, tc - h, np.nan), np.where(disc >= 0, tc + h, np.nan)
+
+
+def _ray_slab(o, d, lo, hi):
+    """Entry and exit t of the box [lo, hi] (NaN where the line misses it)."""
+    tn, tf = clip_to_box(o, d, np.asarray(lo, np.float64), np.asarray(hi, np.float64),
+                         t_min=-np.inf)
+    ok = tn <= tf
+    return np.where(ok, tn, np.nan), np.where(ok, tf, np.nan)
+
+
+def _ray_rod(o, d, a, b, r):
+    """Entry and exit t of the solid cylinder of radius r around the segment
+    a-b, capped flat at a and b (NaN where the line misses it)."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    L = float(np.linalg.norm(b - a))
+    u = (b - a) / L
+    oa = o - a
+    ou, du = oa @ u, d @ u
+    op, dp = oa - ou[:, None] * u, d - du[:, None] * u
+    A = np.sum(dp * dp, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tc = np.where(A > 0, -np.sum(op * dp, 1) / A, 0.0)
+        m = op + tc[:, None] * dp
+        disc = r * r - np.sum(m * m, 1)
+        h = np.where(A > 0, np.sqrt(np.maximum(disc, 0) / A), np.inf)
+        c0, c1 = tc - h, tc + h
+        s0, s1 = (0.0 - ou) / du, (L - ou) / du
+        parallel = du == 0
+        inside = (ou >= 0) & (ou <= L)
+        a0 = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(s0, s1))
+        a1 = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(s0, s1))
+    tn, tf = np.maximum(c0, a0), np.minimum(c1, a1)
+    ok = (disc >= 0) & (tn <= tf)
+    return np.where(ok, tn, np.nan), np.where(ok, tf, np.nan)
+
+
+def _union(pieces):
+    """Entry and exit of a convex union of convex pieces: the line meets the
+    union in one interval, the hull of the pieces' intervals."""
+    tn = np.stack([p[0] for p in pieces], 1)
+    tf = np.stack([p[1] for p in pieces], 1)
+    tn = np.where(np.isnan(tn), np.inf, tn).min(1)
+    tf = np.where(np.isnan(tf), -np.inf, tf).max(1)
+    ok = tn <= tf
+    return np.where(ok, tn, np.nan), np.where(ok, tf, np.nan)
+
+
+def _first_root(spec, o, d, t_min, roots):
+    """The nearest of the candidate roots (n, k) in the box beyond t_min."""
+    lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
+    t0, t1 = clip_to_box(o, d, lo, hi, t_min=t_min)
+    r = np.asarray(roots, np.float64)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(r) & (r >= t0[:, None]) & (r <= t1[:, None])
+    return np.where(ok, r, np.inf).min(1)
+
+
+def _convex_root(spec, o, d, t_min, interval):
+    """The nearest boundary point of a convex solid: its entry, or its exit
+    from inside (the entry and exit being the line's only roots)."""
+    tn, tf = interval
+    tn = np.where(tn < tf, tn, np.nan)             # a tangent line touches: no crossing
+    return _first_root(spec, o, d, t_min, np.stack([tn, tf], 1))
+
+
+def _plane_roots(o, d, axis, values):
+    """t where o + t d meets the planes x_axis = v (inf where parallel)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = [(v - o[:, axis]) / d[:, axis] for v in values]
+    return np.where(np.isfinite(t), t, np.inf).T
+
+
+def _domain_case(name, description, spec, o, d, oracle, t_ref_fn, t_min=0.0, tangent=None,
+                 **kw):
+    """A domain-and-scale Case: rays rounded to float32 first, then the
+    oracle ``t_ref_fn(o64, d64)`` on exactly those rays."""
+    o, d = _f32(o), _f32(_unit(np.asarray(d, np.float64)))
+    t_ref = t_ref_fn(o.astype(np.float64), d.astype(np.float64))
+    tangent = np.zeros(len(o), bool) if tangent is None else tangent
+    return Case(name, description, spec, o, d, float(t_min), t_ref, tangent, oracle,
+                group=DOMAIN, **kw)
+
+
+def _camera(rng, n, lo, hi, radius=None, centre=None):
+    """Rays from points around the box aimed at uniform points inside it."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    c = 0.5 * (lo + hi) if centre is None else np.asarray(centre, np.float64)
+    radius = 1.5 * float(np.linalg.norm(hi - lo)) if radius is None else radius
+    o = c + radius * _unit(rng.normal(size=(n, 3)))
+    aim = lo + (hi - lo) * rng.uniform(0, 1, (n, 3))
+    return o, aim - o
+
+
+def _near_tangent(rng, p, nrm, offsets=(1e-2, 1e-3, 1e-4), back=3.0):
+    """Rays along random tangents at surface points p (unit normals nrm),
+    moved off by each offset outward (near misses) and inward (shallow
+    crossings), starting ``back`` before the point."""
+    d = _perpendicular(nrm, rng)
+    o = [p + s * delta * nrm - back * d for delta in offsets for s in (1, -1)]
+    return np.concatenate(o), np.tile(d, (2 * len(offsets), 1))
+
+
+def _sphere_points(rng, n, c=(0.0, 0.0, 0.0), r=1.0):
+    nrm = _unit(rng.normal(size=(n, 3)))
+    return np.asarray(c, np.float64) + r * nrm, nrm
+
+
+# -- scaled f --
+
+SCALES = (1e-30, 1e-12, 1e12, 1e30)
+
+
+def _scaled(shape, k):
+    def build(rng, n):
+        base = sphere() if shape == "sphere" else torus()
+        spec = Implicit(f"scaled_{shape}", k * base.expr, base.bbox)
+        p, nrm = (_sphere_points(rng, n) if shape == "sphere" else _torus_points(rng, n))
+        og, dg = _near_tangent(rng, p, nrm, offsets=(1e-3, 1e-4))
+        oc, dc = _camera(rng, 2 * n, *base.bbox)
+        deg = DEGREE[shape]
+        return _domain_case(
+            f"scaled_{shape}_{k:g}", f"k f for the library {shape}, k = {k:g}: rays from "
+            f"around its box and near-tangent rays (offsets 1e-3, 1e-4); the roots are those of "
+            f"f for every k (the hits of k f must not depend on k)", spec,
+            np.concatenate([oc, og]), np.concatenate([dc, dg]),
+            f"float64 roots of the unscaled degree-{deg} polynomial",
+            lambda o, d: nearest_root(base, o, d, degree=deg))
+    build.__name__ = f"scaled_{shape}_{k:g}"
+    return build
+
+
+# -- fast-growing f --
+
+def _plane_rays(rng, n, spec, axis, value, angles=(1e-2, 1e-3)):
+    """Camera rays, and rays crossing the plane x_axis = value at shallow
+    angles (long stretches where |F| is small) near the box middle."""
+    lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
+    oc, dc = _camera(rng, 2 * n, lo, hi)
+    o, d = [oc], [dc]
+    others = [i for i in range(3) if i != axis]
+    for a in angles:
+        p = lo + (hi - lo) * rng.uniform(0.3, 0.7, (n, 3))
+        p[:, axis] = value
+        t = np.zeros((n, 3))
+        phi = rng.uniform(0, 2 * np.pi, n)
+        t[:, others[0]], t[:, others[1]] = np.cos(phi), np.sin(phi)
+        e = np.zeros(3)
+        e[axis] = 1.0
+        s = rng.choice([-1.0, 1.0], n)[:, None]
+        dd = math.cos(a) * t + s * math.sin(a) * e
+        o.append(p - 0.5 * dd)
+        d.append(dd)
+    return np.concatenate(o), np.concatenate(d)
+
+
+def exp_wall(rng, n=100):
+    x0 = math.log(2.0) / 50.0
+    spec = Implicit("exp_wall", parse("exp(50 * x) - 2"), ((-1.0,) * 3, (1.0,) * 3))
+    o, d = _plane_rays(rng, n, spec, 0, x0)
+    return _domain_case(
+        "exp_wall", "exp(50 x) - 2 in [-1, 1]^3 (f from -2 to 5e21, |grad f| up to 3e23, all "
+        "within float32): the plane x = ln 2 / 50; rays from around the box and rays crossing "
+        "the plane at 1e-2 and 1e-3 rad", spec, o, d,
+        "ray / plane x = ln(2) / 50 in float64",
+        lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, [x0])))
+
+
+def pow200(rng, n=100):
+    x0 = 0.5 ** (1 / 200)
+    spec = Implicit("pow200", parse("x^200 - 0.5"), ((-1.25,) * 3, (1.25,) * 3))
+    o, d = _plane_rays(rng, n, spec, 0, x0)
+    return _domain_case(
+        "pow200", "x^200 - 0.5 in [-1.25, 1.25]^3 (f, its derivative and its second "
+        "derivative, up to 6e23, within float32; f is flat at -0.5 over most of the box): the "
+        "planes x = +-0.5^(1/200); rays from around the box and rays crossing x = 0.5^(1/200) "
+        "at 1e-2 and 1e-3 rad", spec, o, d,
+        "ray / planes x = +-0.5^(1/200) in float64",
+        lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, [x0, -x0])))
+
+
+# -- partly undefined f --
+
+def hemisphere(rng, n=100):
+    spec = Implicit("hemisphere", parse("z - sqrt(1 - x^2 - y^2)"),
+                    ((-1.2, -1.2, -0.6), (1.2, 1.2, 1.2)))
+    oc, dc = _camera(rng, 3 * n, *spec.bbox)
+    # Rim rays: horizontal lines through the disc just above the rim (they
+    # cross the steep edge of the height field) and just below it (f < 0
+    # inside the cylinder, undefined outside: no root at all).
+    o, d = [oc], [dc]
+    for zoff in (1e-2, 1e-3, -1e-3, -1e-2):
+        phi = rng.uniform(0, 2 * np.pi, n)
+        dd = np.stack([np.cos(phi), np.sin(phi), np.zeros(n)], 1)
+        side = np.stack([-np.sin(phi), np.cos(phi), np.zeros(n)], 1)
+        p = side * rng.uniform(-0.95, 0.95, (n, 1)) + np.array([0.0, 0.0, zoff])
+        o.append(p - 2.0 * dd)
+        d.append(dd)
+
+    def oracle(o, d):
+        t0, t1 = _ray_ball(o, d, (0.0, 0.0, 0.0), 1.0)
+        r = np.stack([t0, t1], 1)
+        with np.errstate(invalid="ignore"):
+            z = o[:, 2, None] + r * d[:, 2, None]
+            r = np.where(z >= 0, r, np.nan)
+        return _first_root(spec, o, d, 0.0, r)
+    return _domain_case(
+        "hemisphere", "the height field z = sqrt(1 - x^2 - y^2) as f = z - sqrt(1 - x^2 - y^2), "
+        "undefined outside the unit cylinder (box [-1.2, 1.2]^2 x [-0.6, 1.2]): rays from "
+        "around the box, and horizontal rays through the disc 1e-2 and 1e-3 above the rim "
+        "(steep crossings) and below it (f < 0 meets undefined: no root)", spec,
+        np.concatenate(o), np.concatenate(d), "unit-sphere roots with z >= 0 (closed form, "
+        "float64)", oracle)
+
+
+def _x_rays(rng, n, spec, spread=0.3):
+    """Camera rays, and rays mostly along +x and -x starting outside the box."""
+    lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
+    oc, dc = _camera(rng, 2 * n, lo, hi)
+    o, d = [oc], [dc]
+    for s in (1.0, -1.0):
+        dd = _unit(np.column_stack([np.full(n, s), spread * rng.normal(size=(n, 2))]))
+        start = lo + (hi - lo) * rng.uniform(0.1, 0.9, (n, 3))
+        start[:, 0] = lo[0] - 0.1 if s > 0 else hi[0] + 0.1
+        o.append(start)
+        d.append(dd)
+    return np.concatenate(o), np.concatenate(d)
+
+
+def inverse_pole(rng, n=100):
+    spec = Implicit("inverse_pole", parse("1 / x - 2"), ((-1.0,) * 3, (1.0,) * 3))
+    o, d = _x_rays(rng, n, spec)
+    return _domain_case(
+        "inverse_pole", "1 / x - 2 in [-1, 1]^3: the plane x = 0.5 is the only root; at the "
+        "pole x = 0, f jumps from -inf to +inf (a sign change that is not a root); rays from "
+        "around the box and along +-x, many crossing the pole, some leaving the box before "
+        "x = 0.5", spec, o, d, "ray / plane x = 0.5 in float64 (the pole excluded)",
+        lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, [0.5])))
+
+
+def log_edge(rng, n=100):
+    x0 = math.exp(0.5) - 1.5
+    spec = Implicit("log_edge", parse("log(x + 1.5) - 0.5"), ((-2.0, -1.0, -1.0), (1.0, 1.0, 1.0)))
+    o, d = _x_rays(rng, n, spec)
+    return _domain_case(
+        "log_edge", "log(x + 1.5) - 0.5 in [-2, 1] x [-1, 1]^2: undefined for x < -1.5, "
+        "-inf at the edge of its domain; the plane x = e^0.5 - 1.5; rays from around the box "
+        "and along +-x, those along +x starting in the undefined part", spec, o, d,
+        "ray / plane x = e^0.5 - 1.5 in float64",
+        lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, [x0])))
+
+
+def undefined_gap(rng, n=100):
+    spec = Implicit("undefined_gap", parse("x * (x - 0.6) / sqrt(x^2 - 0.04)"),
+                    ((-1.0,) * 3, (1.0,) * 3))
+    o, d = _x_rays(rng, n, spec)
+    return _domain_case(
+        "undefined_gap", "x (x - 0.6) / sqrt(x^2 - 0.04) in [-1, 1]^3: undefined for |x| < "
+        "0.2, +inf at x = -0.2 and -inf at x = 0.2, so f changes sign across the gap, which "
+        "is not a root; the plane x = 0.6 is; rays from around the box and along +-x", spec,
+        o, d, "ray / plane x = 0.6 in float64 (the gap excluded)",
+        lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, [0.6])))
+
+
+# -- signed-distance primitives --
+
+X, Y, Z = var("x"), var("y"), var("z")
+
+
+def _sd_box(px, py, pz, b):
+    """Inigo Quilez's exact box SDF: |max(q, 0)| + min(max(q), 0), q = |p| - b."""
+    q = [abs(px) - b[0], abs(py) - b[1], abs(pz) - b[2]]
+    outside = sqrt(sum((maximum(qi, 0.0) ** 2 for qi in q[1:]), maximum(q[0], 0.0) ** 2))
+    return outside + minimum(maximum(*q), 0.0)
+
+
+SDF_BOX = (0.6, 0.4, 0.3)          # half extents
+SDF_ROUND = 0.1                    # rounding radius of the rounded box
+CAPSULE = ((-0.5, -0.2, 0.1), (0.5, 0.3, -0.1), 0.25)
+CYLINDER = (0.5, 0.6)              # radius, half height (axis z)
+SDF_BBOX = ((-1.0,) * 3, (1.0,) * 3)
+
+
+def _box_points(rng, n, b):
+    """Points on the faces of the box [-b, b] with their normals."""
+    axis = rng.integers(0, 3, n)
+    sign = rng.choice([-1.0, 1.0], n)
+    b = np.asarray(b, np.float64)
+    p = rng.uniform(-1, 1, (n, 3)) * b
+    p[np.arange(n), axis] = sign * b[axis]
+    nrm = np.zeros((n, 3))
+    nrm[np.arange(n), axis] = sign
+    return p, nrm
+
+
+def _sdf_case(name, description, spec, rng, n, p, nrm, interval_fn, oracle):
+    oc, dc = _camera(rng, 2 * n, *spec.bbox)
+    og, dg = _near_tangent(rng, p, nrm)
+    return _domain_case(
+        name, description + "; rays from around the box aimed inside it, and near-tangent "
+        "rays (random tangents at surface points, moved off by 1e-2, 1e-3, 1e-4 outward and "
+        "inward); sphere tracing gets L = 1 (an exact SDF; interval arithmetic bounds |grad f| "
+        "by inf here)", spec, np.concatenate([oc, og]), np.concatenate([dc, dg]), oracle,
+        lambda o, d: _convex_root(spec, o, d, 0.0, interval_fn(o, d)), lipschitz=1.0)
+
+
+def sdf_box(rng, n=50):
+    b = SDF_BOX
+    spec = Implicit("sdf_box", _sd_box(X, Y, Z, b), SDF_BBOX)
+    p, nrm = _box_points(rng, n, b)
+    return _sdf_case("sdf_box", f"the exact box SDF (abs, max, min, sqrt of max(q, 0)^2), half "
+                     f"extents {b}", spec, rng, n, p, nrm,
+                     lambda o, d: _ray_slab(o, d, -np.asarray(b), b),
+                     "slab test (closed form, float64)")
+
+
+def _round_box_pieces(b, r):
+    e = np.asarray(b, np.float64) - r              # the inner box
+    pieces = []
+    for i in range(3):
+        g = e.copy()
+        g[i] += r
+        pieces.append(("slab", -g, g))
+    for i in range(3):
+        j, k = [a for a in range(3) if a != i]
+        for sj in (-1, 1):
+            for sk in (-1, 1):
+                a, b_ = np.zeros(3), np.zeros(3)
+                a[i], b_[i] = -e[i], e[i]
+                a[j] = b_[j] = sj * e[j]
+                a[k] = b_[k] = sk * e[k]
+                pieces.append(("rod", a, b_))
+    for s in np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).T.reshape(-1, 3):
+        pieces.append(("ball", s * e, None))
+    return pieces
+
+
+def sdf_round_box(rng, n=50):
+    b, r = SDF_BOX, SDF_ROUND
+    e = np.asarray(b) - r
+    expr = _sd_box(X, Y, Z, tuple(e)) - r
+    spec = Implicit("sdf_round_box", expr, SDF_BBOX)
+    pieces = _round_box_pieces(b, r)
+    # Surface points: on the flat faces, and on the corner balls.
+    p1, n1 = _box_points(rng, n - n // 3, e)
+    p1 = p1 + r * n1
+    n2 = _unit(np.abs(rng.normal(size=(n // 3, 3)))) * rng.choice([-1.0, 1.0], (n // 3, 3))
+    p2 = np.sign(n2) * e + r * n2
+
+    def interval(o, d):
+        out = []
+        for kind, a, c in pieces:
+            if kind == "slab":
+                out.append(_ray_slab(o, d, a, c))
+            elif kind == "rod":
+                out.append(_ray_rod(o, d, a, c, r))
+            else:
+                out.append(_ray_ball(o, d, a, r))
+        return _union(out)
+    return _sdf_case("sdf_round_box", f"the rounded box SDF (the box SDF of half extents "
+                     f"{tuple(round(float(v), 3) for v in e)} minus {r}), so the box {b} with edges "
+                     f"rounded by {r}", spec, rng, n, np.concatenate([p1, p2]),
+                     np.concatenate([n1, n2]), interval,
+                     "closed form, float64: the union of 3 slabs, 12 edge cylinders and 8 "
+                     "corner balls (the rounded box is exactly that union)")
+
+
+def sdf_capsule(rng, n=50):
+    a, b, r = CAPSULE
+    a_, b_ = np.asarray(a), np.asarray(b)
+    ba = b_ - a_
+    pa = [X - a[0], Y - a[1], Z - a[2]]
+    h = minimum(maximum((pa[0] * ba[0] + pa[1] * ba[1] + pa[2] * ba[2]) / float(ba @ ba), 0.0),
+                1.0)
+    q = [pa[i] - float(ba[i]) * h for i in range(3)]
+    spec = Implicit("sdf_capsule", sqrt(q[0] ** 2 + q[1] ** 2 + q[2] ** 2) - r, SDF_BBOX)
+    # Surface points: the side (normal perpendicular to the axis) and the caps.
+    u = ba / np.linalg.norm(ba)
+    ns = _perpendicular(np.tile(u, (n - n // 3, 1)), rng)
+    ps = a_ + rng.uniform(0, 1, (n - n // 3, 1)) * ba + r * ns
+    nc = _unit(rng.normal(size=(n // 3, 3)))
+    end = np.where((nc @ u)[:, None] > 0, b_, a_)
+    nc = np.where(((nc @ u) * np.where((nc @ u) > 0, 1, -1))[:, None] >= 0, nc, -nc)
+    pc = end + r * nc
+    return _sdf_case("sdf_capsule", f"the capsule SDF (a clamp by min / max, sqrt) of the "
+                     f"segment {a}-{b}, radius {r}", spec, rng, n, np.concatenate([ps, pc]),
+                     np.concatenate([ns, nc]),
+                     lambda o, d: _union([_ray_rod(o, d, a, b, r), _ray_ball(o, d, a, r),
+                                          _ray_ball(o, d, b, r)]),
+                     "closed form, float64: ray / finite cylinder and ray / the two end balls")
+
+
+def sdf_cylinder(rng, n=50):
+    r, hh = CYLINDER
+    dx, dz = sqrt(X ** 2 + Y ** 2) - r, abs(Z) - hh
+    expr = minimum(maximum(dx, dz), 0.0) + sqrt(maximum(dx, 0.0) ** 2 + maximum(dz, 0.0) ** 2)
+    spec = Implicit("sdf_cylinder", expr, SDF_BBOX)
+    m = n - n // 3
+    phi = rng.uniform(0, 2 * np.pi, n)
+    ns = np.stack([np.cos(phi[:m]), np.sin(phi[:m]), np.zeros(m)], 1)
+    ps = r * ns + np.column_stack([np.zeros((m, 2)), rng.uniform(-hh, hh, m)])
+    k = n - m
+    rho = r * np.sqrt(rng.uniform(0, 1, k))
+    sz = rng.choice([-1.0, 1.0], k)
+    pc = np.stack([rho * np.cos(phi[m:]), rho * np.sin(phi[m:]), sz * hh], 1)
+    nc = np.column_stack([np.zeros((k, 2)), sz])
+    return _sdf_case("sdf_cylinder", f"the capped cylinder SDF (sqrt, abs, min, max) around "
+                     f"the z axis, radius {r}, half height {hh}", spec, rng, n,
+                     np.concatenate([ps, pc]), np.concatenate([ns, nc]),
+                     lambda o, d: _ray_rod(o, d, (0, 0, -hh), (0, 0, hh), r),
+                     "closed form, float64: ray / infinite cylinder intersected with the slab "
+                     "|z| <= h")
+
+
+SMOOTH_BALLS = (((-0.35, 0.0, 0.0), 0.45), ((0.4, 0.1, 0.0), 0.35))
+
+
+def _smooth(kind, k):
+    (c1, r1), (c2, r2) = SMOOTH_BALLS
+    a = sqrt((X - c1[0]) ** 2 + (Y - c1[1]) ** 2 + (Z - c1[2]) ** 2) - r1
+    b = sqrt((X - c2[0]) ** 2 + (Y - c2[1]) ** 2 + (Z - c2[2]) ** 2) - r2
+    if kind == "poly":
+        h = minimum(maximum(0.5 + 0.5 * (b - a) / k, 0.0), 1.0)
+        return b + h * (a - b) - k * h * (1.0 - h)
+    return -k * log(exp(-a / k) + exp(-b / k))
+
+
+def _smooth_case(kind, k, steps=8192):
+    def build(rng, n):
+        name = f"sdf_smooth_union_{kind}"
+        spec = Implicit(name, _smooth(kind, k), SDF_BBOX)
+        (c1, r1), (c2, r2) = SMOOTH_BALLS
+        o, d = _camera(rng, 3 * n, (-0.85, -0.5, -0.5), (0.8, 0.5, 0.5), radius=3.0,
+                       centre=(0.0, 0.0, 0.0))
+        form = ("the polynomial smin (h = clamp(1/2 + (b - a) / 2k, 0, 1), mix(b, a, h) - "
+                f"k h (1 - h), k = {k:g})" if kind == "poly" else
+                f"the log-sum-exp smin (-k log(e^(-a/k) + e^(-b/k)), k = {k:g})")
+        diag = 2 * math.sqrt(3)
+        return _domain_case(
+            name, f"the smooth union by {form} of the ball SDFs a, b (centres {c1}, {c2}, "
+            f"radii {r1}, {r2}); rays from a distance of 3 aimed at the blend's box; sphere "
+            f"tracing gets L = 1 (|grad f| <= 1 for both smin forms of two exact SDFs)", spec, o,
+            d, f"float64 scan of F(t) at {steps} steps over the ray's part of the box (a step of "
+            f"at most diag / {steps} = {diag / steps:.1e}), bisected (no closed form)",
+            lambda o, d: nearest_root(spec, o, d, steps=steps), lipschitz=1.0)
+    build.__name__ = f"sdf_smooth_union_{kind}"
+    return build
+
+
+# -- far from the origin --
+
+FAR = ((1e4, 1e4, 1e4), 1.0)
+FAR_SMALL = ((1e4, -1e4, 1e4), 1e-3)
+
+
+def _far_spec(name, c, r):
+    return Implicit(name, (X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2 - r * r,
+                    (tuple(v - 1.1 * r for v in c), tuple(v + 1.1 * r for v in c)))
+
+
+def _ball_oracle(spec, c, r):
+    return lambda o, d: _convex_root(spec, o, d, 0.0, _ray_ball(o, d, c, r))
+
+
+def far_sphere(rng, n=100):
+    c, r = FAR
+    spec = _far_spec("far_sphere", c, r)
+    lo, hi = spec.bbox
+    # A camera at the world origin (t about 1.7e4), and near-tangent rays
+    # from 3 radii away.
+    oc = np.zeros((2 * n, 3))
+    dc = np.asarray(lo) + (np.asarray(hi) - np.asarray(lo)) * rng.uniform(0, 1, (2 * n, 3))
+    p, nrm = _sphere_points(rng, n, c, r)
+    og, dg = _near_tangent(rng, p, nrm, offsets=(1e-2, 1e-3))
+    return _domain_case(
+        "far_sphere", "the unit sphere centred at (1e4, 1e4, 1e4) in its tight box (1.1 "
+        "radii): rays from a camera at the world origin (t ~ 1.7e4: ulp(t) / 2 ~ 1e-3 is 3e-4 "
+        "diagonals) and near-tangent rays (offsets 1e-2, 1e-3 before the float32 rounding of "
+        "their origins, whose ulp there is 1e-3); lgshape judged on its float64 t64",
+        spec, np.concatenate([oc, og]), np.concatenate([dc, dg]),
+        "ray / sphere in float64 from the float32 rays (closest-approach form)",
+        _ball_oracle(spec, c, r), judge_t64=True)
+
+
+def _far_small_rays(rng, n, c, r, origin, pool=40):
+    """Rays aimed at the small sphere; candidates from a pool so that about
+    half hit (float32 directions are coarse at this distance)."""
+    spec = _far_spec("far_small_sphere", c, r)
+    lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
+    m = pool * n
+    if origin is None:
+        o = np.asarray(c) + 0.01 * _unit(rng.normal(size=(m, 3)))
+    else:
+        o = np.tile(np.asarray(origin, np.float64), (m, 1))
+    aim = np.asarray(c) + r * 1.05 * _unit(rng.normal(size=(m, 3))) \
+        * rng.uniform(0, 1, (m, 1)) ** (1 / 3)
+    o32, d32 = _f32(o), _f32(_unit(aim - o))
+    t = _ball_oracle(spec, c, r)(o32.astype(np.float64), d32.astype(np.float64))
+    hit = np.flatnonzero(np.isfinite(t))[: (2 * n + 1) // 2]
+    miss = np.flatnonzero(~np.isfinite(t))[: 2 * n - len(hit)]
+    keep = np.concatenate([hit, miss])
+    return spec, o32[keep], d32[keep]
+
+
+def far_small_sphere(rng, n=100):
+    c, r = FAR_SMALL
+    spec, o, d = _far_small_rays(rng, n, c, r, None)
+    return _domain_case(
+        "far_small_sphere", "a sphere of radius 1e-3 centred at (1e4, -1e4, 1e4), where "
+        "float32 positions are 1e-3 apart, in its tight box (diagonal 3.8e-3): rays from "
+        "0.01 away (t ~ 1e-2, so ulp(t) is negligible), about half of them hitting; lgshape "
+        "judged on its float64 t64", spec, o, d,
+        "ray / sphere in float64 from the float32 rays (closest-approach form)",
+        _ball_oracle(spec, c, r), judge_t64=True)
+
+
+def far_small_sphere_origin(rng, n=100):
+    c, r = FAR_SMALL
+    spec, o, d = _far_small_rays(rng, n, c, r, (0.0, 0.0, 0.0))
+    return _domain_case(
+        "far_small_sphere_origin", "the same sphere (radius 1e-3 at (1e4, -1e4, 1e4)) seen "
+        "from a camera at the world origin: t ~ 1.7e4, whose float32 ulp / 2 (1e-3) is 26 "
+        "times the tolerance (3.8e-5), so no float32 t can be judged right; lgshape is judged "
+        "on its float64 t64 (the search), the other methods on their float32 t; march is not "
+        "run: its step (diag / 256 = 1.5e-5) is below ulp(t) = 2e-3, so t + step == t and, "
+        "having no step cap, it never ends", spec, o, d,
+        "ray / sphere in float64 from the float32 rays (closest-approach form)",
+        _ball_oracle(spec, c, r), judge_t64=True,
+        skip={"march": "never ends: its step is below ulp(t) and it has no step cap"})
+
+
+# -- degenerate rays --
+
+def degenerate_rays(rng, n=None):
+    spec = sphere()
+    inf, nan = np.inf, np.nan
+    rows = [  # (origin, direction)
+        ((0.5, 0.0, 0.0), (0.0, 0.0, 0.0)), ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+        ((1.0, 0.0, 0.0), (0.0, 0.0, 0.0)), ((0.0, 0.6, 0.8), (0.0, 0.0, 0.0)),
+        ((-3.0, 0.0, 0.0), (inf, 0.0, 0.0)), ((-3.0, 0.0, 0.0), (inf, 1.0, 0.0)),
+        ((0.0, 0.0, 0.0), (1.0, -inf, 0.0)), ((0.0, -3.0, 0.0), (-inf, inf, 0.0)),
+        ((-3.0, 0.0, 0.0), (nan, 0.0, 0.0)), ((-3.0, 0.0, 0.0), (1.0, nan, 0.0)),
+        ((0.0, 0.0, 0.0), (nan, nan, nan)), ((0.5, 0.0, 0.0), (0.0, 0.0, nan)),
+        ((nan, 0.0, 0.0), (1.0, 0.0, 0.0)), ((0.0, nan, -3.0), (0.0, 0.0, 1.0)),
+        ((nan, nan, nan), (0.0, 0.0, 1.0)), ((0.0, 0.0, nan), (0.0, 0.0, 1.0)),
+        ((-inf, 0.0, 0.0), (1.0, 0.0, 0.0)), ((0.0, inf, 0.0), (0.0, -1.0, 0.0)),
+        ((-inf, -inf, -inf), (1.0, 1.0, 1.0)), ((inf, 0.0, 0.0), (nan, 0.0, 0.0)),
+    ]
+    o = _f32([r[0] for r in rows])
+    d = _f32([r[1] for r in rows])
+    return Case("degenerate_rays", "the unit sphere and rays that are no rays: zero "
+                "directions (origins inside the box, two on the surface), directions with an "
+                "infinite or NaN component, NaN and infinite origins; every one is a miss "
+                "and must end (capped rays counted)", spec, o, d, 0.0,
+                np.full(len(o), np.inf), np.zeros(len(o), bool),
+                "none needed: every ray is a miss (the contract)", group=DOMAIN)
+
+
 #: The case builders with their default ray counts (per spike, or per case).
 BUILDERS = ((thin_spikes, 3), (grazing, 60), (tangent, 120), (singular_cone, 100),
             (singular_kummer, 16), (steep_wall, 300), (origin_on_surface, 100), (thin_shell, 300))
 
+#: The domain-and-scale builders (ray counts: per camera / tangent set, see each).
+DOMAIN_BUILDERS = (
+    *((_scaled(shape, k), 40) for shape in ("sphere", "torus") for k in SCALES),
+    (exp_wall, 60), (pow200, 60),
+    (hemisphere, 60), (inverse_pole, 60), (log_edge, 60), (undefined_gap, 60),
+    (sdf_box, 30), (sdf_round_box, 30), (sdf_capsule, 30), (sdf_cylinder, 30),
+    (_smooth_case("poly", 0.3), 60), (_smooth_case("lse", 0.1), 60),
+    (far_sphere, 60), (far_small_sphere, 60), (far_small_sphere_origin, 60),
+    (degenerate_rays, 1))
 
-def cases(seed: int = 5, scale: float = 1.0) -> list[Case]:
-    """All cases, reproducibly; ``scale`` < 1 takes fewer rays per case."""
-    return [build(np.random.default_rng([seed, i]), max(1, int(math.ceil(n * scale))))
-            for i, (build, n) in enumerate(BUILDERS)]
+
+def cases(seed: int = 5, scale: float = 1.0, groups=GROUPS) -> list[Case]:
+    """All cases, reproducibly; ``scale`` < 1 takes fewer rays per case;
+    ``groups``: which of :data:`GROUPS`."""
+    out = []
+    for group, builders, base in ((FEATURES, BUILDERS, 0), (DOMAIN, DOMAIN_BUILDERS, 1000)):
+        if group not in groups:
+            continue
+        out += [build(np.random.default_rng([seed, base + i]), max(1, int(math.ceil(n * scale))))
+                for i, (build, n) in enumerate(builders)]
+    return out
