@@ -84,3 +84,58 @@ def test06_bad_python_values():
         x + "1"
     with pytest.raises(ValueError, match="not finite"):
         x + float("inf")
+
+
+@pytest.mark.parametrize("text,pos", [
+    ("1e400*x", 1),
+    ("x + 2*1e400", 7),
+    ("x ^ 1e999", 5),
+    ("sin(x) - 1" + "0" * 400, 10),      # an integer literal beyond float64
+    ("min(x, .5e309)", 8),
+])
+def test07_number_beyond_float64_names_its_position(text, pos):
+    """Oracle: the literal's own position (1-based) in the text, and the
+    ParseError's message naming it; a raw ValueError was raised before."""
+    with pytest.raises(ParseError) as err:
+        parse(text)
+    assert err.value.pos + 1 == pos
+    assert f"at position {pos}" in str(err.value)
+    assert "too large for a float64" in str(err.value)
+    assert parse(text.replace("1e400", "1e300").replace("1e999", "2").replace(".5e309", ".5e308")
+                 .replace("0" * 400, "0")) is not None   # the same text with a finite literal
+
+
+def test08_non_finite_python_constants_are_refused():
+    """Oracle: math.isfinite; the message says why."""
+    for bad in (float("inf"), -float("inf"), float("nan"), 10**400):
+        with pytest.raises(ValueError, match="is not finite.*finite float64"):
+            x * bad
+        with pytest.raises(ValueError, match="not finite"):
+            lgshape.Expr.lift(bad)
+    with pytest.raises(ValueError, match="integer powers"):
+        x ** float("inf")
+    assert (x ** 2**70).param == 2**70
+
+
+def test09_long_text_errors_quote_an_excerpt():
+    """An error far into a long text names the exact position; the message
+    quotes the 160 characters around it, the caret under the culprit."""
+    text = "x + " * 5000 + "$ + y"
+    with pytest.raises(ParseError) as err:
+        parse(text)
+    pos = text.index("$")
+    assert err.value.pos == pos and f"at position {pos + 1}:" in str(err.value)
+    _, shown, caret = str(err.value).split("\n")
+    assert len(shown) < 200 and shown[caret.index("^")] == "$"
+
+
+def test10_min_max_are_balanced_trees():
+    """min/max of n arguments: n - 1 binary nodes, ceil(log2 n) deep, the
+    arguments left to right (oracle: the pairs written out by hand)."""
+    a, b, c, d, e_ = x, y, z, x * y, y * z
+    assert lgshape.minimum(a, b, c) is lgshape.minimum(lgshape.minimum(a, b), c)
+    assert lgshape.maximum(a, b, c, d) is lgshape.maximum(lgshape.maximum(a, b),
+                                                          lgshape.maximum(c, d))
+    assert parse("min(x, y, z, x*y, y*z)") is lgshape.minimum(
+        lgshape.minimum(lgshape.minimum(a, b), lgshape.minimum(c, d)), e_)
+    assert lgshape.minimum(x, x) is x

@@ -6,6 +6,12 @@ through every node with the op table's derivative rule. The gradient seeds
 one axis at a time; the ray derivatives seed the direction variables
 ``dx, dy, dz``: g = d . grad f = dF/dt and h = d^T H d = d^2F/dt^2. Results
 are interned expressions, so they share nodes with f and with each other.
+
+Every pass is one iterative walk over the DAG (:func:`.node.topological`),
+so any depth works and the time is linear in the number of nodes; the
+gradient pushes its three seeds in the same walk, and the Hessian
+differentiates the three gradient components in one walk too (they share
+most of their nodes).
 """
 from __future__ import annotations
 
@@ -18,28 +24,68 @@ DX, DY, DZ = var("dx"), var("dy"), var("dz")
 X, Y, Z = var("x"), var("y"), var("z")
 
 
+# Ops whose derivative rule gives the constant 0 whenever every argument's
+# derivative is 0, so that the rule need not run (nor build nodes that fold
+# away): every op but step (its rule is kink(c) whatever the seeds), div and
+# log (a constant zero denominator leaves a 0/0 node). Leaving an op out only
+# costs time.
+_ZERO_IN_ZERO_OUT = frozenset({"add", "sub", "mul", "neg", "pow", "sqrt", "exp", "sin", "cos",
+                               "abs", "min", "max", "kink"})
+
+
+def _derivatives(roots, seedings) -> list[tuple[Expr, ...]]:
+    """For each root, its derivatives under each of the seedings (dicts
+    variable name -> derivative of that variable), in one walk."""
+    k = len(seedings)
+    zeros = (ZERO,) * k
+    d = {}
+    for n in topological(roots):
+        op = n.op
+        if op == "const":
+            d[id(n)] = zeros
+        elif op == "var":
+            d[id(n)] = tuple(Expr.lift(s.get(n.param, ZERO)) for s in seedings)
+        else:
+            rule, args = OPS[op].deriv, n.args
+            da = [d[id(a)] for a in args]
+            if op in _ZERO_IN_ZERO_OUT:
+                d[id(n)] = tuple(ZERO if all(t[j] is ZERO for t in da)
+                                 else rule(n, args, [t[j] for t in da]) for j in range(k))
+            else:
+                d[id(n)] = tuple(rule(n, args, [t[j] for t in da]) for j in range(k))
+    return [d[id(r)] for r in roots]
+
+
 def derivative(f: Expr, seeds: dict[str, Expr]) -> Expr:
+    """The derivative of f when each variable v has derivative seeds[v]
+    (0 for a variable not named)."""
     d = {}
     for n in topological([f]):
-        if n.op == "const":
+        op = n.op
+        if op == "const":
             d[id(n)] = ZERO
-        elif n.op == "var":
+        elif op == "var":
             d[id(n)] = Expr.lift(seeds.get(n.param, ZERO))
         else:
-            d[id(n)] = OPS[n.op].deriv(n, n.args, [d[id(a)] for a in n.args])
+            da = [d[id(a)] for a in n.args]
+            if op in _ZERO_IN_ZERO_OUT and all(t is ZERO for t in da):
+                d[id(n)] = ZERO
+            else:
+                d[id(n)] = OPS[op].deriv(n, n.args, da)
     return d[id(f)]
+
+
+_AXES = tuple({v: const(1.0)} for v in ("x", "y", "z"))
 
 
 @lru_cache(maxsize=256)
 def gradient(f: Expr) -> tuple[Expr, Expr, Expr]:
-    one = const(1.0)
-    return tuple(derivative(f, {v: one}) for v in ("x", "y", "z"))
+    return _derivatives([f], _AXES)[0]
 
 
 @lru_cache(maxsize=256)
 def hessian(f: Expr) -> tuple[tuple[Expr, ...], ...]:
-    g = gradient(f)
-    return tuple(gradient(gi) for gi in g)
+    return tuple(_derivatives(list(gradient(f)), _AXES))
 
 
 @lru_cache(maxsize=256)

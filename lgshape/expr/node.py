@@ -22,7 +22,7 @@ class Expr:
     __slots__ = ("op", "args", "param", "__weakref__")
 
     def __new__(cls, op: str, args: tuple = (), param=None):
-        key = (op, tuple(id(a) for a in args), param)
+        key = (op, param, *map(id, args))
         node = _interned.get(key)
         if node is None:
             node = object.__new__(cls)
@@ -33,13 +33,19 @@ class Expr:
     # -- construction with simplification ---------------------------------
     @staticmethod
     def lift(v) -> "Expr":
-        if isinstance(v, Expr):
+        if v.__class__ is Expr or isinstance(v, Expr):
             return v
-        if isinstance(v, numbers.Real) and not isinstance(v, bool):
-            v = float(v)
-            if not math.isfinite(v):
-                raise ValueError(f"constant {v} is not finite")
-            return Expr("const", (), v + 0.0)  # + 0.0 folds -0.0 into 0.0
+        t = type(v)
+        if t is float or t is int or (isinstance(v, numbers.Real) and t is not bool):
+            try:
+                f = float(v)
+            except OverflowError:   # an int beyond the float64 range
+                f = math.inf
+            if not math.isfinite(f):
+                shown = repr(v) if len(repr(v)) <= 24 else f"{repr(v)[:12]}...{repr(v)[-8:]}"
+                raise ValueError(f"constant {shown} is not finite: an expression's constants "
+                                 f"are finite float64 values")
+            return Expr("const", (), f + 0.0)  # + 0.0 folds -0.0 into 0.0
         raise TypeError(f"cannot use {type(v).__name__} {v!r} in an expression")
 
     @property
@@ -102,17 +108,25 @@ class Expr:
 
 
 def topological(roots) -> list[Expr]:
-    order, seen, stack = [], set(), [(r, False) for r in reversed(roots)]
-    while stack:
-        node, expanded = stack.pop()
-        if id(node) in seen:
+    """Every node below ``roots``, each once, children before parents (the
+    post-order of a depth-first walk taking arguments left to right).
+    Iterative, with an explicit stack: any depth, linear time."""
+    order, seen = [], set()
+    append, mark = order.append, seen.add
+    for root in roots:
+        if id(root) in seen:
             continue
-        if expanded:
-            seen.add(id(node))
-            order.append(node)
-        else:
-            stack.append((node, True))
-            stack.extend((a, False) for a in reversed(node.args) if id(a) not in seen)
+        mark(id(root))
+        stack = [root]
+        push, pop = stack.append, stack.pop
+        while stack:
+            for a in stack[-1].args:  # at most two: rescanning them is cheap
+                if id(a) not in seen:
+                    mark(id(a))
+                    push(a)
+                    break
+            else:
+                append(pop())
     return order
 
 
@@ -127,25 +141,50 @@ def var(name: str) -> Expr:
 ZERO, ONE = const(0.0), const(1.0)
 
 
+_fold = None  # (NUMPY, OPS, numpy), imported on first use (ops imports this module)
+_ARITH = {"add": lambda a, b: a + b, "sub": lambda a, b: a - b, "mul": lambda a, b: a * b,
+          "div": lambda a, b: a / b, "neg": lambda a, b: -a}
+
+
 def _node(op, *args, param=None) -> Expr:
     """The node op(args), folded to a constant when every argument is one."""
-    if all(a.is_const for a in args):
+    global _fold
+    for a in args:
+        if a.op != "const":
+            return Expr(op, args, param)
+    if op in _ARITH:   # correctly rounded in Python floats as in float64 numpy
+        a = args[0].param
+        b = args[1].param if len(args) == 2 else None
+        if op == "div" and b == 0.0:
+            return Expr(op, args, param)   # inf or nan: not folded
+        v = _ARITH[op](a, b)
+        return const(v) if math.isfinite(v) else Expr(op, args, param)
+    if _fold is None:
+        import numpy as np
         from ..arraymath import NUMPY
         from .ops import OPS
-        import numpy as np
-        extra = (param,) if param is not None else ()
-        with np.errstate(all="ignore"):
-            v = float(OPS[op].value(NUMPY, *[np.float64(a.param) for a in args], *extra))
-        if math.isfinite(v):
-            return const(v)
+        _fold = NUMPY, OPS, np
+    NUMPY, OPS, np = _fold
+    extra = (param,) if param is not None else ()
+    with np.errstate(all="ignore"):
+        v = float(OPS[op].value(NUMPY, *[np.float64(a.param) for a in args], *extra))
+    if math.isfinite(v):
+        return const(v)
     return Expr(op, args, param)
 
 
+# The simplifying constructors below test constants inline (``x.op ==
+# "const" and x.param == v``) rather than through methods: they run for every
+# node that parsing and differentiation build.
+
 def add(a, b) -> Expr:
-    a, b = Expr.lift(a), Expr.lift(b)
-    if a._is(0.0):
+    if a.__class__ is not Expr:
+        a = Expr.lift(a)
+    if b.__class__ is not Expr:
+        b = Expr.lift(b)
+    if a.op == "const" and a.param == 0.0:
         return b
-    if b._is(0.0):
+    if b.op == "const" and b.param == 0.0:
         return a
     if b.op == "neg":
         return sub(a, b.args[0])
@@ -153,10 +192,13 @@ def add(a, b) -> Expr:
 
 
 def sub(a, b) -> Expr:
-    a, b = Expr.lift(a), Expr.lift(b)
-    if b._is(0.0):
+    if a.__class__ is not Expr:
+        a = Expr.lift(a)
+    if b.__class__ is not Expr:
+        b = Expr.lift(b)
+    if b.op == "const" and b.param == 0.0:
         return a
-    if a._is(0.0):
+    if a.op == "const" and a.param == 0.0:
         return neg(b)
     if a is b:
         return ZERO
@@ -166,19 +208,26 @@ def sub(a, b) -> Expr:
 
 
 def mul(a, b) -> Expr:
-    a, b = Expr.lift(a), Expr.lift(b)
-    if a._is(0.0) or b._is(0.0):
-        return ZERO
-    if a._is(1.0):
-        return b
-    if b._is(1.0):
-        return a
-    if a._is(-1.0):
-        return neg(b)
-    if b._is(-1.0):
-        return neg(a)
-    if b.is_const and not a.is_const:  # constants first: c * e
-        a, b = b, a
+    if a.__class__ is not Expr:
+        a = Expr.lift(a)
+    if b.__class__ is not Expr:
+        b = Expr.lift(b)
+    a_const, b_const = a.op == "const", b.op == "const"
+    if a_const or b_const:
+        av = a.param if a_const else None
+        bv = b.param if b_const else None
+        if av == 0.0 or bv == 0.0:
+            return ZERO
+        if av == 1.0:
+            return b
+        if bv == 1.0:
+            return a
+        if av == -1.0:
+            return neg(b)
+        if bv == -1.0:
+            return neg(a)
+        if b_const and not a_const:  # constants first: c * e
+            a, b = b, a
     return _node("mul", a, b)
 
 
@@ -205,7 +254,8 @@ def power(a, n) -> Expr:
         if not n.is_const:
             raise ValueError("the exponent of ^ must be a constant integer")
         n = n.param
-    if isinstance(n, bool) or not isinstance(n, numbers.Real) or float(n) != int(n):
+    if isinstance(n, bool) or not isinstance(n, numbers.Real) or (
+            not isinstance(n, numbers.Integral) and not float(n).is_integer()):
         raise ValueError(f"only integer powers are supported (got {n!r}); use sqrt() for roots")
     n = int(n)
     if n < 0:
@@ -229,13 +279,30 @@ sqrt, exp, log, sin, cos, abs_, step, kink = (
     unary(o) for o in ("sqrt", "exp", "log", "sin", "cos", "abs", "step", "kink"))
 
 
+def _reduce_balanced(op: str, args) -> Expr:
+    """op(a0, a1, ..., an) for an associative, commutative, idempotent op
+    (min, max), built as a balanced binary tree: adjacent pairs are combined
+    level by level, so n arguments give n - 1 nodes of depth ceil(log2 n)
+    instead of a chain n - 1 deep (which would make every later walk, and
+    the kernel, as deep). Up to three arguments this is the left fold
+    op(op(a0, a1), a2). Iterative: any number of arguments."""
+    level = [Expr.lift(a) for a in args]
+    while len(level) > 1:
+        nxt = []
+        for i in range(0, len(level) - 1, 2):
+            a, b = level[i], level[i + 1]
+            nxt.append(a if a is b else _node(op, a, b))
+        if len(level) % 2:
+            nxt.append(level[-1])
+        level = nxt
+    return level[0]
+
+
 def minimum(a, b, *more) -> Expr:
-    a, b = Expr.lift(a), Expr.lift(b)
-    r = a if a is b else (_node("min", a, b))
-    return minimum(r, *more) if more else r
+    """min(a, b, ...) as a balanced tree of binary min nodes."""
+    return _reduce_balanced("min", (a, b, *more))
 
 
 def maximum(a, b, *more) -> Expr:
-    a, b = Expr.lift(a), Expr.lift(b)
-    r = a if a is b else (_node("max", a, b))
-    return maximum(r, *more) if more else r
+    """max(a, b, ...) as a balanced tree of binary max nodes."""
+    return _reduce_balanced("max", (a, b, *more))
