@@ -84,21 +84,25 @@ def march(surface, o, d, step: float, bisections: int = 24, t_min=0.0, t_max=mat
     dt = step / dr.norm(d)
     active = (t0 <= t1) & dr.isfinite(t0)
 
-    def body(active, a, fa, found, evals):
+    # Every ray ends: a step below ulp(t) would stall, so a ray that makes no
+    # progress is capped (reported as a miss, counted in ``capped``).
+    def body(active, a, fa, found, evals, stalled):
         b = dr.minimum(a + dt, t1)
         fb = F(b)
         change = active & (dr.sign(fa) != dr.sign(fb))
         found = found | change
         evals = evals + dr.select(active, 1, 0)
         last = b >= t1
+        stalled = stalled | (active & ~change & ~last & (b <= a))
         a = dr.select(active & ~change, b, a)
         fa = dr.select(active & ~change, fb, fa)
-        active = active & ~change & ~last
-        return active, a, fa, found, evals
+        active = active & ~change & ~last & ~stalled
+        return active, a, fa, found, evals, stalled
 
-    state = (Bool(active), Float(t0), F(t0), dr.zeros(Bool, n), dr.zeros(UInt32, n) + 1)
-    _, a, fa, found, evals = dr.while_loop(state=state, cond=lambda a, *_: a, body=body,
-                                           label="march")
+    state = (Bool(active), Float(t0), F(t0), dr.zeros(Bool, n), dr.zeros(UInt32, n) + 1,
+             dr.zeros(Bool, n))
+    _, a, fa, found, evals, stalled = dr.while_loop(state=state, cond=lambda a, *_: a,
+                                                    body=body, label="march")
     lo, hi = Float(a), dr.minimum(a + dt, t1)
     for _ in range(bisections):
         mid = 0.5 * (lo + hi)
@@ -109,4 +113,4 @@ def march(surface, o, d, step: float, bisections: int = 24, t_min=0.0, t_max=mat
         fa = dr.select(left, fa, fm)
     evals = evals + dr.select(found, bisections, 0)
     t = dr.select(found, 0.5 * (lo + hi), math.inf)
-    return RayResult(t, found, evals, evals, dr.zeros(Bool, n), dr.zeros(Bool, n))
+    return RayResult(t, found, evals, evals, stalled, dr.zeros(Bool, n))

@@ -873,12 +873,11 @@ def far_small_sphere_origin(rng, n=100):
         "far_small_sphere_origin", "the same sphere (radius 1e-3 at (1e4, -1e4, 1e4)) seen "
         "from a camera at the world origin: t ~ 1.7e4, whose float32 ulp / 2 (1e-3) is 26 "
         "times the tolerance (3.8e-5), so no float32 t can be judged right; lgshape is judged "
-        "on its float64 t64 (the search), the other methods on their float32 t; march is not "
-        "run: its step (diag / 256 = 1.5e-5) is below ulp(t) = 2e-3, so t + step == t and, "
-        "having no step cap, it never ends", spec, o, d,
+        "on its float64 t64 (the search), the other methods on their float32 t; march's "
+        "step (diag / 256 = 1.5e-5) is below ulp(t) = 2e-3, so t + step == t: its rays "
+        "stall and are capped", spec, o, d,
         "ray / sphere in float64 from the float32 rays (closest-approach form)",
-        _ball_oracle(spec, c, r), judge_t64=True,
-        skip={"march": "never ends: its step is below ulp(t) and it has no step cap"})
+        _ball_oracle(spec, c, r), judge_t64=True)
 
 
 # -- degenerate rays --

@@ -253,5 +253,5 @@ def test12_domain_baseline_failures_show(quick):
     for case in ("hemisphere", "inverse_pole", "log_edge", "undefined_gap", "sdf_box"):
         (r,) = _stab(res, case, "lgshape_global")
         assert r["note"].startswith("refused"), r
-    (r,) = _stab(res, "far_small_sphere_origin", "march")
-    assert r["note"].startswith("not run") and r["missed"] is None
+    (r,) = _stab(res, "far_small_sphere_origin", "march")    # step < ulp(t): stalls, capped
+    assert r["capped"] > 0 and r["missed"] >= r["capped"], r
