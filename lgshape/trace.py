@@ -473,9 +473,10 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
 
     def sign_known(F, eF):
         """Sign of a point value outside its error bound; 0 where it cannot
-        be told from 0; 2 where F is undefined (NaN or infinite)."""
+        be told from 0; 2 where F is undefined (NaN or infinite) or its
+        error bound overflows (the value cannot be trusted)."""
         s_ = sign_of(F - eF, F + eF)
-        return dr.select(dr.isfinite(F), s_, 2)
+        return dr.select(dr.isfinite(F) & dr.isfinite(eF), s_, 2)
 
     def down(v):
         """One float64 rounding of a sum, covered outward."""
