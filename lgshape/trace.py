@@ -38,7 +38,8 @@ so the hits of k * f are those of f for any k that float32 intervals hold.
 Signs are decided only outside that bound, so rounding noise never decides
 one. **Interval values** of F and g over a ray interval come from float32
 interval arithmetic (:mod:`lgshape.interval`); F over an interval is the
-intersection of the natural interval form and the mean-value form.
+mean-value form where that is finite, else (where F(t_m) is undefined or
+its derivative unbounded: domain edges, poles) the natural interval form.
 
 **Coordinates.** Each ray is moved to its box entry in float64, and f is
 evaluated in coordinates local to the box centre (:mod:`lgshape.expr.shift`),
@@ -461,11 +462,14 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
         return F, eF, g, eg
 
     def segment_bounds(lo, hi):
-        """Float32 intervals of [F, g] (or [F, h]) over the local segment
-        u = e + [lo, hi] d."""
-        second = ge if search_mode == "interval" else he
-        Fi, Si = bounds.segment_interval([f, second], e32, d32, lo, hi, m)
-        return Fi.lo, Fi.hi, Si.lo, Si.hi
+        """Float32 interval of g (or h) over the local segment u = e + [lo, hi] d."""
+        Si = bounds.segment_interval(ge if search_mode == "interval" else he, e32, d32, lo, hi, m)
+        return Si.lo, Si.hi
+
+    def natural_bounds(lo, hi):
+        """Float32 interval of F itself over the same segment."""
+        Fi = bounds.segment_interval(f, e32, d32, lo, hi, m)
+        return Fi.lo, Fi.hi
 
     def sign_of(lo, hi):
         """+1 / -1 where [lo, hi] has one strict sign, else 0 (NaN: 0)."""
@@ -534,11 +538,9 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
         iters = iters + dr.select(busy, 1, 0)
         # Only searching lanes need interval bounds: a real branch skips the
         # work where a whole SIMD packet is refining.
-        Fi_lo, Fi_hi, S_lo, S_hi = (Float64(v) for v in dr.if_stmt(
+        S_lo, S_hi = (Float64(v) for v in dr.if_stmt(
             args=(lo, hi), cond=searching, true_fn=segment_bounds,
-            false_fn=lambda lo, hi: (Float(0), Float(0), Float(0), Float(0)),
-            label="lgshape_bounds"))
-        evals = evals + dr.select(busy, 1, 0) + dr.select(searching, 1, 0)
+            false_fn=lambda lo, hi: (Float(0), Float(0)), label="lgshape_bounds"))
 
         # ---- Search step: exclude, bracket, split (or tiny) ----
         defined = dr.isfinite(F) & dr.isfinite(eF)
@@ -563,10 +565,19 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
             mv_hi = up(Fm_hi + ag + dr.maximum(h_hi, 0) * q2)
             Fa = (down(Fm_lo - gm_hi * r64 + h_lo * q2), up(Fm_hi - gm_lo * r64 + h_hi * q2))
             Fb = (down(Fm_lo + gm_lo * r64 + h_lo * q2), up(Fm_hi + gm_hi * r64 + h_hi * q2))
-        # F over the interval: the natural form, narrowed by the mean-value
-        # form where F(t_m) is defined.
-        F_lo = dr.select(defined, dr.maximum(Fi_lo, mv_lo), Fi_lo)
-        F_hi = dr.select(defined, dr.minimum(Fi_hi, mv_hi), Fi_hi)
+        # F over the interval: the mean-value form where it is finite (F(t_m)
+        # defined, its derivative bounded); else the natural interval form,
+        # evaluated only for those lanes (undefined points, domain edges,
+        # poles), where it also tells whether F is bounded.
+        mv_ok = defined & dr.isfinite(mv_lo) & dr.isfinite(mv_hi)
+        need_fi = searching & ~mv_ok
+        Fi_lo, Fi_hi = (Float64(v) for v in dr.if_stmt(
+            args=(lo, hi), cond=need_fi, true_fn=natural_bounds,
+            false_fn=lambda lo, hi: (Float(-dr.inf), Float(dr.inf)), label="lgshape_natural"))
+        evals = evals + dr.select(busy, 1, 0) + dr.select(searching, 1, 0) \
+            + dr.select(need_fi, 1, 0)
+        F_lo = dr.select(mv_ok, mv_lo, Fi_lo)
+        F_hi = dr.select(mv_ok, mv_hi, Fi_hi)
         F_lo = dr.select(dr.isnan(F_lo), -dr.inf, F_lo)
         F_hi = dr.select(dr.isnan(F_hi), dr.inf, F_hi)
         excluded = (F_lo > 0) | (F_hi < 0)
@@ -581,7 +592,7 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
         tiny = searching & ~empty & ~bracket & ((r < r_min) | (level >= MAX_LEVEL))
         split = searching & ~empty & ~bracket & ~tiny
         # F bounded over the tiny interval: no pole inside it.
-        is_bounded = dr.isfinite(Fi_lo) & dr.isfinite(Fi_hi)
+        is_bounded = mv_ok | (dr.isfinite(Fi_lo) & dr.isfinite(Fi_hi))
         # A tiny interval whose middle value is within its error bound of 0
         # is a hit (a tangent touch or singular point, to float precision).
         tiny_zero = tiny & defined & (s_m == 0) & is_bounded
