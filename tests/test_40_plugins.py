@@ -192,6 +192,33 @@ def test07_no_self_hit_from_spawned_rays():
     assert np.abs(np3(far.t) - chord).max() < 1e-5
 
 
+def test07b_self_hit_epsilon():
+    """Rays starting exactly on the surface (origin at the hit point, no
+    spawn offset) ignore hits closer than SELF_HIT_EPSILON x the world box
+    diagonal, as documented; hits just beyond it are reported. Oracle: the
+    unit sphere's closed-form roots in float64."""
+    from lgshape.plugins import common
+    from lgshape.plugins.lgsurface import SELF_HIT_EPSILON
+    lg = load_shape(**{k: v for k, v in SPHERE.items() if k != "type"})
+    eps = SELF_HIT_EPSILON * np.linalg.norm(np.full(3, 2.2))
+    rng = np.random.default_rng(7)
+    p = rng.normal(size=(2000, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    out = p + 0.3 * rng.normal(size=p.shape)              # outward directions
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    out = np.where((out * p).sum(1, keepdims=True) > 0.2, out, p)
+    assert not np3(common.ray_intersect(lg, rays(p, out)).is_valid()).any()
+    assert not np3(common.ray_test(lg, rays(p, out))).any()
+    # inward from the surface: the far side (chord -2 p.d), never t ~ 0
+    si = common.ray_intersect(lg, rays(p, -out))
+    chord = 2 * (p * out).sum(1)
+    assert np3(si.is_valid()).all() and np.abs(np3(si.t) - chord).max() < 1e-5
+    # starting 3 eps before the surface along the normal: hit at 3 eps
+    q = p * (1 + 3 * eps)
+    si = common.ray_intersect(lg, rays(q, -p))
+    assert np3(si.is_valid()).all() and np.abs(np3(si.t) - 3 * eps).max() < 1e-6
+
+
 def test08_flip_normals():
     # Oracle: flipping negates n (the grad f direction) and nothing else.
     from lgshape.plugins import common
