@@ -263,12 +263,14 @@ def _mitsuba_runner(method, setting, scene, rays, memory, build, extra=None):
     return Runner(method, setting, run, read, normals, memory, build, extra or {})
 
 
-def _empty_runner(method, setting, rays, build, note):
-    """A method left with no geometry (e.g. no sign change on its grid)."""
+def _empty_runner(method, setting, rays, build, note, has_cap=False):
+    """A method left with no geometry (e.g. no sign change on its grid), or
+    refused; ``has_cap``: the method has an iteration cap (no ray reached it)."""
     n = len(rays.o)
 
     def read(out):
-        return {"t": np.full(n, np.inf), "hit": np.zeros(n, bool), "evals": None, "capped": None}
+        return {"t": np.full(n, np.inf), "hit": np.zeros(n, bool), "evals": None,
+                "capped": np.zeros(n, bool) if has_cap else None}
     return Runner(method, setting, lambda: (), read, lambda t: np.full((n, 3), np.nan), 0, build,
                   {"note": note})
 
@@ -345,13 +347,8 @@ def _seed_runner(spec, rays):
     try:
         return lgshape_runner(spec, rays, "seed", 6, t64=True)
     except ValueError as err:
-        n = len(rays.o)
-
-        def read(out):
-            return {"t": np.full(n, np.inf), "hit": np.zeros(n, bool), "evals": None,
-                    "capped": np.zeros(n, bool)}
-        return Runner("lgshape_global", "global L and G, depth 6", lambda: (), read,
-                      lambda t: np.full((n, 3), np.nan), 0, 0.0, {"note": f"refused: {err}"})
+        return _empty_runner("lgshape_global", "global L and G, depth 6", rays, 0.0,
+                             f"refused: {err}", has_cap=True)
 
 
 def stability_runners(spec, rays, cfg: Config, L=None):
@@ -475,17 +472,10 @@ def bench_stability(cfg: Config, log, groups=stability.GROUPS):
         notes.append({"case": case.name, "group": case.group, "description": case.description,
                       "oracle": case.oracle, "rays": len(case.o),
                       "tangent": int(case.tangent.sum()), "t_min": case.t_min,
-                      "judge_t64": case.judge_t64, "tolerance": case.tolerance})
+                      "judge_t64": case.judge_t64})
         rays = Rays(case.o, case.d, case.t_min)
         for make in stability_runners(case.surface, rays, cfg, case.lipschitz):
             runner = make()
-            if runner.method in case.skip:
-                out.append({"case": case.name, "group": case.group, "method": runner.method,
-                            "setting": runner.setting, "missed": None, "false_hits": None,
-                            "capped": None, "nans": None, "tangent_excluded": int(case.tangent.sum()),
-                            "rays": len(case.o), "judged_on": None,
-                            "note": f"not run: {case.skip[runner.method]}"})
-                continue
             res, _ = timed(runner, 0)
             on64 = case.judge_t64 and "t64" in res
             t = np.where(res["hit"], res["t64"] if on64 else res["t"], np.inf)
@@ -767,8 +757,7 @@ def report(results, command, written) -> str:
              "missed too); a false hit is a hit with no root there. Tangent rays (either answer "
              "is right) are excluded from both counts and listed. `(refused)`: the method "
              "cannot be built for that f (the seed's global L or G is infinite) and reports "
-             "no hit; `(no geometry)`: the grid samples have no sign change; `not run`: the "
-             "method would not end on those rays (the case says why).\n")
+             "no hit; `(no geometry)`: the grid samples have no sign change.\n")
     keys = list(dict.fromkeys((r["method"], r["setting"]) for r in stab))
     notes = results["cases"]
     for group in dict.fromkeys(c.get("group", stability.FEATURES) for c in notes):
@@ -795,8 +784,6 @@ def report(results, command, written) -> str:
                 note = (r or {}).get("note") or ""
                 if r is None:
                     cells.append("")
-                elif note.startswith("not run"):
-                    cells.append("not run")
                 else:
                     cells.append(f"{r['missed']} / {r['false_hits']} / {_fmt(r['capped'])} / "
                                  f"{r['nans']}" + ("<br>(refused)" if note.startswith("refused")

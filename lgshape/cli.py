@@ -81,7 +81,7 @@ def render(args) -> int:
     out = args.output or os.path.splitext(os.path.basename(args.scene))[0] + ".exr"
     ext = os.path.splitext(out)[1].lower()
     if ext not in (".exr", ".png"):
-        raise CommandError(f"-o {out}: the output must end in .exr or .png, got '{out}'")
+        raise CommandError(f"-o {out}: the output must end in .exr or .png")
     defines = {}
     for d in args.defines:
         name, sep, value = d.partition("=")

@@ -43,7 +43,7 @@ the bench runs the methods.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -83,9 +83,7 @@ class Case:
     oracle: str
     group: str = FEATURES
     judge_t64: bool = False  # lgshape judged on its float64 t64 (the search)
-    tolerance: float = TOLERANCE   # depth tolerance, in box diagonals
     lipschitz: float | None = None  # a known valid L for sphere tracing (exact SDFs: 1)
-    skip: dict = field(default_factory=dict)   # method -> why it is not run
 
     @property
     def diagonal(self) -> float:
@@ -141,7 +139,7 @@ def judge(case: Case, t, hit, normals=None) -> dict:
     the module text); ``normals`` (n, 3) at the hits, if the method has them."""
     t = np.asarray(t, np.float64)
     hit = np.asarray(hit, bool)
-    tol = case.tolerance * case.diagonal
+    tol = TOLERANCE * case.diagonal
     judged = ~case.tangent
     has = np.isfinite(case.t_ref)
     t_hit = np.where(hit, t, np.inf)
@@ -416,6 +414,11 @@ def _convex_root(spec, o, d, t_min, interval):
     return _first_root(spec, o, d, t_min, np.stack([tn, tf], 1))
 
 
+def _plane_oracle(spec, *xs):
+    """The first root among the planes x = xs along each ray (float64)."""
+    return lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, list(xs)))
+
+
 def _plane_roots(o, d, axis, values):
     """t where o + t d meets the planes x_axis = v (inf where parallel)."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -515,7 +518,7 @@ def exp_wall(rng, n=100):
         "within float32): the plane x = ln 2 / 50; rays from around the box and rays crossing "
         "the plane at 1e-2 and 1e-3 rad", spec, o, d,
         "ray / plane x = ln(2) / 50 in float64",
-        lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, [x0])))
+        _plane_oracle(spec, x0))
 
 
 def pow200(rng, n=100):
@@ -528,7 +531,7 @@ def pow200(rng, n=100):
         "planes x = +-0.5^(1/200); rays from around the box and rays crossing x = 0.5^(1/200) "
         "at 1e-2 and 1e-3 rad", spec, o, d,
         "ray / planes x = +-0.5^(1/200) in float64",
-        lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, [x0, -x0])))
+        _plane_oracle(spec, x0, -x0))
 
 
 # -- partly undefined f --
@@ -587,7 +590,7 @@ def inverse_pole(rng, n=100):
         "pole x = 0, f jumps from -inf to +inf (a sign change that is not a root); rays from "
         "around the box and along +-x, many crossing the pole, some leaving the box before "
         "x = 0.5", spec, o, d, "ray / plane x = 0.5 in float64 (the pole excluded)",
-        lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, [0.5])))
+        _plane_oracle(spec, 0.5))
 
 
 def log_edge(rng, n=100):
@@ -599,7 +602,7 @@ def log_edge(rng, n=100):
         "-inf at the edge of its domain; the plane x = e^0.5 - 1.5; rays from around the box "
         "and along +-x, those along +x starting in the undefined part", spec, o, d,
         "ray / plane x = e^0.5 - 1.5 in float64",
-        lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, [x0])))
+        _plane_oracle(spec, x0))
 
 
 def undefined_gap(rng, n=100):
@@ -611,7 +614,7 @@ def undefined_gap(rng, n=100):
         "0.2, +inf at x = -0.2 and -inf at x = 0.2, so f changes sign across the gap, which "
         "is not a root; the plane x = 0.6 is; rays from around the box and along +-x", spec,
         o, d, "ray / plane x = 0.6 in float64 (the gap excluded)",
-        lambda o, d: _first_root(spec, o, d, 0.0, _plane_roots(o, d, 0, [0.6])))
+        _plane_oracle(spec, 0.6))
 
 
 # -- signed-distance primitives --
@@ -732,7 +735,6 @@ def sdf_capsule(rng, n=50):
     ps = a_ + rng.uniform(0, 1, (n - n // 3, 1)) * ba + r * ns
     nc = _unit(rng.normal(size=(n // 3, 3)))
     end = np.where((nc @ u)[:, None] > 0, b_, a_)
-    nc = np.where(((nc @ u) * np.where((nc @ u) > 0, 1, -1))[:, None] >= 0, nc, -nc)
     pc = end + r * nc
     return _sdf_case("sdf_capsule", f"the capsule SDF (a clamp by min / max, sqrt) of the "
                      f"segment {a}-{b}, radius {r}", spec, rng, n, np.concatenate([ps, pc]),

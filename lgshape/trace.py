@@ -77,10 +77,9 @@ import numpy as np
 
 from . import bounds, grid as gridmod
 from .arraymath import NUMPY, DrJitMath
-from .expr import (Expr, evaluate, evaluate_interval, evaluate_with_error, gradient,
-                   hessian, parse, ray_derivatives)
+from .expr import (Expr, evaluate, evaluate_with_error, gradient, hessian, parse,
+                   ray_derivatives)
 from .expr.shift import localize
-from .interval import Interval
 from .surfaces import Implicit
 
 MAX_LEVEL = 22          # bisection depth bound inside one cell segment
@@ -437,7 +436,7 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
     g_org = [Float(e64[i] + K.grid_origin[i]) for i in range(3)]   # for the grid walk
     d32 = [Float(dr.select(active, d[i], 0.0)) for i in range(3)]
 
-    dlen = dr.norm(Float(1.0) * type(o)(*d32))
+    dlen = dr.sqrt(d32[0] * d32[0] + d32[1] * d32[1] + d32[2] * d32[2])
     dlen = dr.select(dlen > 0, dlen, 1.0)
     cell = dr.minimum(dr.minimum(dev.cell[0], dev.cell[1]), dev.cell[2])
     margin = 1e-3 * cell / dlen          # neighbouring segments overlap by this much
@@ -537,9 +536,11 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
         busy = mode != DONE
         iters = iters + dr.select(busy, 1, 0)
         # Only searching lanes need interval bounds: a real branch skips the
-        # work where a whole SIMD packet is refining.
+        # work where a whole SIMD packet is refining. The global mode uses
+        # its one G instead.
+        local_bounds = searching & (search_mode != "global")
         S_lo, S_hi = (Float64(v) for v in dr.if_stmt(
-            args=(lo, hi), cond=searching, true_fn=segment_bounds,
+            args=(lo, hi), cond=local_bounds, true_fn=segment_bounds,
             false_fn=lambda lo, hi: (Float(0), Float(0)), label="lgshape_bounds"))
 
         # ---- Search step: exclude, bracket, split (or tiny) ----
@@ -574,7 +575,7 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
         Fi_lo, Fi_hi = (Float64(v) for v in dr.if_stmt(
             args=(lo, hi), cond=need_fi, true_fn=natural_bounds,
             false_fn=lambda lo, hi: (Float(-dr.inf), Float(dr.inf)), label="lgshape_natural"))
-        evals = evals + dr.select(busy, 1, 0) + dr.select(searching, 1, 0) \
+        evals = evals + dr.select(busy, 1, 0) + dr.select(local_bounds, 1, 0) \
             + dr.select(need_fi, 1, 0)
         F_lo = dr.select(mv_ok, mv_lo, Fi_lo)
         F_hi = dr.select(mv_ok, mv_hi, Fi_hi)

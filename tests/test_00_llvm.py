@@ -208,6 +208,7 @@ def test13_hook_off_and_no_lgshape_aborts_on_an_old_llvm(tmp_path):
     # the process (LLVM ERROR: Cannot select ... fminimum, SIGABRT).
     out = run_python(f"import drjit; {MAPPED}; {KERNEL}", tmp_path, LGSHAPE_NO_LLVM_HOOK="1")
     libs = json.loads(out.stdout.split("\n", 1)[0])
+    assert libs, out.stderr[-2000:]
     if old_only(libs):
         assert out.returncode != 0 and "LLVM ERROR" in out.stderr, (out.returncode, out.stderr[-2000:])
     elif libs:

@@ -26,6 +26,8 @@ import pytest
 from lgshape import cli
 
 SCENES = sorted((pathlib.Path(__file__).parent.parent / "scenes").glob("*.xml"))
+#: A small render for the CLI tests (16x12, 2 spp).
+SMALL = ["-D", "resx=16", "-D", "resy=12", "-D", "spp=2"]
 
 AOV_SCENE = """<scene version="3.0.0">
     <default name="resx" value="12"/>
@@ -136,9 +138,8 @@ def test02_scene_renders_tiny(scene, tmp_path):
     text = scene.read_text()
     for name in ("spp", "resx", "resy"):
         assert f'<default name="{name}"' in text
-    small = ["-D", "resx=16", "-D", "resy=12", "-D", "spp=2"]
     out = tmp_path / f"{scene.stem}.exr"
-    assert cli.main(["render", str(scene), "-o", str(out), *small]) == 0
+    assert cli.main(["render", str(scene), "-o", str(out), *SMALL]) == 0
     rgb = read_exr(out)["RGB"]
     assert rgb.shape == (12, 16, 3)
     assert np.all(np.isfinite(rgb)) and rgb.mean() > 0.01
@@ -154,12 +155,11 @@ def test02b_scene_lgsurfaces_are_drawn(scene, tmp_path):
     # more); the colour changes by more than 0.05 in at least 10% (17% or
     # more). Were the lgsurfaces not drawn, the images would be identical;
     # were they only invisible to camera rays, the depths would be.
-    small = ["-D", "resx=16", "-D", "resy=12", "-D", "spp=2"]
     ch = {}
     for kind in ("keep", "bare"):
         path = scene_copy(scene, tmp_path / f"{kind}.xml", lgsurfaces=kind == "keep",
                           depth_aov=True)
-        assert cli.main(["render", str(path), "-o", str(tmp_path / f"{kind}.exr"), *small]) == 0
+        assert cli.main(["render", str(path), "-o", str(tmp_path / f"{kind}.exr"), *SMALL]) == 0
         ch[kind] = read_exr(tmp_path / f"{kind}.exr")
     d_keep, d_bare = ch["keep"]["dd.T"], ch["bare"]["dd.T"]
     changed = np.abs(d_keep - d_bare) > 1e-3 * np.maximum(d_keep, d_bare)

@@ -59,20 +59,7 @@ def _derivatives(roots, seedings) -> list[tuple[Expr, ...]]:
 def derivative(f: Expr, seeds: dict[str, Expr]) -> Expr:
     """The derivative of f when each variable v has derivative seeds[v]
     (0 for a variable not named)."""
-    d = {}
-    for n in topological([f]):
-        op = n.op
-        if op == "const":
-            d[id(n)] = ZERO
-        elif op == "var":
-            d[id(n)] = Expr.lift(seeds.get(n.param, ZERO))
-        else:
-            da = [d[id(a)] for a in n.args]
-            if op in _ZERO_IN_ZERO_OUT and all(t is ZERO for t in da):
-                d[id(n)] = ZERO
-            else:
-                d[id(n)] = OPS[op].deriv(n, n.args, da)
-    return d[id(f)]
+    return _derivatives([f], [seeds])[0][0]
 
 
 _AXES = tuple({v: const(1.0)} for v in ("x", "y", "z"))
