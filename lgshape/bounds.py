@@ -50,6 +50,12 @@ def segment_interval(e, o, d, a, b, m) -> Interval:
     """Interval of expression e (in x, y, z, dx, dy, dz; or a list of them)
     over the ray segment o + [a, b] d. With a = b it encloses the exact value
     at that point of the ray, rounding included."""
+    return evaluate_interval(e, segment_env(o, d, a, b, m), m)
+
+
+def segment_env(o, d, a, b, m) -> dict:
+    """Interval variables x, y, z over the segment o + [a, b] d (rounding of
+    the positions included) and the plain direction dx, dy, dz."""
     env = {}
     for i, v in enumerate("xyz"):
         pa, pb = o[i] + a * d[i], o[i] + b * d[i]
@@ -57,4 +63,4 @@ def segment_interval(e, o, d, a, b, m) -> Interval:
         slack = (m.abs(o[i]) + m.maximum(m.abs(a), m.abs(b)) * m.abs(d[i])) * m.eps + m.tiny
         env[v] = Interval(m.minimum(pa, pb) - slack, m.maximum(pa, pb) + slack)
         env["d" + v] = d[i]
-    return evaluate_interval(e, env, m)
+    return env

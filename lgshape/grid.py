@@ -109,10 +109,11 @@ def build(f, lo, hi, depth: int = 6, mode: str = "local", L: float | None = None
         if level < depth:
             offsets = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)])
             cells = (2 * cells[:, None, :] + offsets[None]).reshape(-1, 3)
-    return _brick_map(lo, hi, depth, cells, tested)
+    return brick_map(lo, hi, depth, cells, tested)
 
 
-def _brick_map(lo, hi, depth, cells, tested) -> PruningGrid:
+def brick_map(lo, hi, depth, cells, tested) -> PruningGrid:
+    """The brick map of the occupied fine cells (n, 3)."""
     R = 2 ** depth
     nb = R // BRICK
     b, bit = _brick_of(cells, R)
@@ -209,8 +210,9 @@ def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
     caller moves it to the box entry, so t stays small and float32 resolves
     the cells). A stateless DDA: each step locates the cell at t and moves t
     to the exit of that cell, or of the cube of empty bricks around it.
-    Returns (found, t_enter, t_exit, stuck) of that cell; lanes that pass
-    t_end return found = False.
+    Returns (found, t_enter, t_exit, stuck, slot) of that cell (``slot``:
+    its place in the brick map, brick * 64 + bit, see :func:`slot_at`);
+    lanes that pass t_end return found = False.
 
     Locating is nudged forward in *position*: each coordinate moves by
     ``NUDGE`` cells in the direction of travel, so a point on a face (within
@@ -236,7 +238,7 @@ def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
              for a in range(3)]
     max_steps = 4 * R + 16
 
-    def body(t, active, found, t_exit, steps):
+    def body(t, active, found, t_exit, steps, slot):
         i, out, inside = [], [], Bool(active) & (t <= t_end)
         for a in range(3):
             p = (o[a] + t * d[a]) / g.cell[a] + shift[a]
@@ -263,13 +265,35 @@ def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
         t_out = dr.maximum(t_out, t + dr.maximum(t_nudge, dr.abs(t) * 2.0**-22))
         found = found | hit
         t_exit = dr.select(hit, t_out, t_exit)
+        slot = dr.select(hit, UInt32(v - 1) * 64 + bit, slot)
         t = dr.select(inside & ~hit, t_out, t)
         steps = steps + 1
-        return t, inside & ~hit & (steps < max_steps), found, t_exit, steps
+        return t, inside & ~hit & (steps < max_steps), found, t_exit, steps, slot
 
     n = dr.width(t)
-    t_in, walking, found, t_exit, steps = dr.while_loop(
-        state=(Float(t), Bool(active), dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Int32, n)),
+    t_in, walking, found, t_exit, steps, slot = dr.while_loop(
+        state=(Float(t), Bool(active), dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Int32, n),
+               dr.zeros(UInt32, n)),
         cond=lambda t, active, *_: active, body=body, label="lgshape_dda")
     stuck = ~found & (steps >= max_steps) & (t_in <= t_end)
-    return found, t_in, t_exit, stuck
+    return found, t_in, t_exit, stuck, slot
+
+
+def slot_at(g: DeviceGrid, p):
+    """(slot, occupied) of the fine cell holding point p (grid-relative
+    coordinates, a list of three Dr.Jit arrays); slot = brick * 64 + bit."""
+    import drjit as dr
+    Float = type(p[0])
+    Int32 = dr.int32_array_t(Float)
+    UInt32 = dr.uint32_array_t(Float)
+    R, nb = g.R, g.R // BRICK
+    fl = [dr.floor(p[a] / g.cell[a]) for a in range(3)]
+    inside = (fl[0] >= 0) & (fl[1] >= 0) & (fl[2] >= 0) & (fl[0] < R) & (fl[1] < R) & (fl[2] < R)
+    i = [dr.clip(Int32(v), 0, R - 1) for v in fl]
+    b = UInt32(((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2))
+    v = dr.gather(Int32, g.top, b, inside)
+    brick = inside & (v > 0)
+    bit = UInt32((i[0] & 3) + BRICK * ((i[1] & 3) + BRICK * (i[2] & 3)))
+    word = dr.gather(UInt32, g.bricks, UInt32(2 * (v - 1)) + (bit >> 5), brick)
+    occupied = brick & (((word >> (bit & 31)) & 1) == 1)
+    return dr.select(occupied, UInt32(v - 1) * 64 + bit, 0), occupied

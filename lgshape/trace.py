@@ -81,6 +81,8 @@ from .expr import (Expr, evaluate, evaluate_with_error, gradient, hessian, parse
                    ray_derivatives)
 from .expr.shift import localize
 from .surfaces import Implicit
+from .tables import DeviceTables, TableForm, evaluate_points, find_tables
+from . import tables as tablemod
 
 MAX_LEVEL = 22          # bisection depth bound inside one cell segment
 
@@ -109,6 +111,8 @@ class RayResult:
 def _as_expr(expr):
     if isinstance(expr, Implicit):
         return expr.expr, expr.bbox
+    if isinstance(expr, TableForm):
+        return expr, getattr(expr, "bbox", None)
     if isinstance(expr, str):
         return parse(expr), None
     if isinstance(expr, Expr):
@@ -165,6 +169,15 @@ class Surface:
 
     An f that is NaN or infinite at every sampled point of the box has no
     surface anywhere: that is refused with a ValueError.
+
+    **Tables.** ``expr`` may be a :class:`~lgshape.tables.TableForm` (from
+    :mod:`lgshape.primitives`), and a plain expression holding an n-ary min,
+    max or sum of at least :data:`~lgshape.tables.MIN_ROWS` operands of one
+    structure is turned into one (:func:`~lgshape.tables.find_tables`). Then
+    each pruning cell keeps the rows that can matter there, the search
+    evaluates only those, and the compiled kernels depend on the templates,
+    not on the number of rows or their values. Tables use the ``"interval"``
+    search and computed bounds (no hand-given L or G).
     """
 
     def __init__(self, expr, bbox=None, *, L: float | None = None, G: float | None = None,
@@ -185,7 +198,12 @@ class Surface:
         if search not in SEARCH_MODES:
             raise ValueError(f"unknown search mode {search!r} (one of {', '.join(SEARCH_MODES)})")
         self.search = search
-        self.expr, self.lo, self.hi = f, lo, hi
+        self.tables = f if isinstance(f, TableForm) else find_tables(f)
+        self._expr = None if isinstance(f, TableForm) else f
+        self.lo, self.hi = lo, hi
+        if self.tables is not None and (L is not None or G is not None or search != "interval"):
+            raise ValueError("a table form (many primitives) uses the 'interval' search with "
+                             "computed bounds: leave out L, G and search")
         self._check_defined()
         if L is not None:
             self._check_L(float(L))
@@ -194,19 +212,36 @@ class Surface:
         self.L, self.G_hand = L, G
         # The search evaluates f about the box centre (see the module notes).
         self.centre = 0.5 * (lo + hi)
-        self.local_expr = localize(f, self.centre)
-        self.g_expr, self.h_expr = ray_derivatives(self.local_expr)
-        self.grid = gridmod.build(f, lo, hi, self.depth,
-                                  mode="global" if L is not None else "local", L=L)
+        if self.tables is None:
+            self.local_expr = localize(f, self.centre)
+            self.g_expr, self.h_expr = ray_derivatives(self.local_expr)
+            self.grid = gridmod.build(f, lo, hi, self.depth,
+                                      mode="global" if L is not None else "local", L=L)
+            self.cell_rows = None
+        else:
+            self.cell_rows = tablemod.build(self.tables, lo, hi, self.depth)
+            self.grid = gridmod.brick_map(lo, hi, self.depth, self.cell_rows.cells,
+                                          self.cell_rows.tested)
         self._device = {}
+
+    @property
+    def expr(self) -> Expr:
+        """f as one expression (for a table form, built on first use)."""
+        if self._expr is None:
+            self._expr = self.tables.expr()
+        return self._expr
 
     # -- construction checks ----------------------------------------------------
     def _check_defined(self):
         p = _sample_points(self.lo, self.hi)
         with np.errstate(all="ignore"):
-            v = evaluate(self.expr, {c: p[:, i] for i, c in enumerate("xyz")}, NUMPY)
+            if self.tables is not None:
+                v = evaluate_points(self.tables, p)
+            else:
+                v = evaluate(self.expr, {c: p[:, i] for i, c in enumerate("xyz")}, NUMPY)
         if not np.any(np.isfinite(np.broadcast_to(v, len(p)))):
-            raise ValueError(f"f = {self.expr!r} is NaN or infinite at all {len(p)} sampled "
+            shown = self.tables if self.tables is not None else self.expr
+            raise ValueError(f"f = {shown!r} is NaN or infinite at all {len(p)} sampled "
                              f"points of the box {self.bbox}: it has no surface there")
 
     def _check_L(self, L):
@@ -258,7 +293,8 @@ class Surface:
         return float(bounds.hessian_norm(self.expr, self.lo[None], self.hi[None])[0])
 
     def __repr__(self):
-        return (f"Surface({self.expr!r}, bbox={self.bbox}, depth={self.depth}, "
+        shown = self.tables if self.tables is not None else self.expr
+        return (f"Surface({shown!r}, bbox={self.bbox}, depth={self.depth}, "
                 f"cells={len(self.grid.cells)})")
 
     # -- Dr.Jit side ------------------------------------------------------------
@@ -274,15 +310,20 @@ class Surface:
                 hi=[dr.opaque(Float64, float(v)) for v in self.hi],
                 centre=[dr.opaque(Float64, float(v)) for v in self.centre],
                 grid_origin=[dr.opaque(Float64, float(v)) for v in self.centre - self.lo],
-                diag=dr.opaque(Float, self.diagonal))
+                diag=dr.opaque(Float, self.diagonal),
+                tables=None if self.tables is None else DeviceTables(
+                    self.tables, self.cell_rows, self.grid, self.centre, Float))
         return self._device[key]
 
     def gradient(self, p):
         """grad f at points p (Array3f or (N, 3) numpy)."""
         p = _points(p)
         Float = type(p.x)
-        m = self._kernel_data(Float).m
-        gx, gy, gz = evaluate(list(gradient(self.expr)), {"x": p.x, "y": p.y, "z": p.z}, m)
+        K = self._kernel_data(Float)
+        if K.tables is not None:
+            _, _, g = _table_point(K, p, with_gradient=True)
+            return type(p)(*(Float(v) for v in g))
+        gx, gy, gz = evaluate(list(gradient(self.expr)), {"x": p.x, "y": p.y, "z": p.z}, K.m)
         return type(p)(gx, gy, gz)
 
     def normal(self, p):
@@ -295,7 +336,10 @@ class Surface:
     def value(self, p):
         """f at points p."""
         p = _points(p)
-        return evaluate(self.expr, {"x": p.x, "y": p.y, "z": p.z}, self._kernel_data(type(p.x)).m)
+        K = self._kernel_data(type(p.x))
+        if K.tables is not None:
+            return type(p.x)(_table_point(K, p)[0])
+        return evaluate(self.expr, {"x": p.x, "y": p.y, "z": p.z}, K.m)
 
     def intersect(self, o, d, t_min=0.0, t_max=math.inf, active=True):
         """Nearest root t in [t_min, t_max] along o + t d: returns (t, hit),
@@ -332,6 +376,29 @@ class _KernelData:
     centre: list         # origin of the local coordinates, float64
     grid_origin: list    # centre - lo: local coordinates -> grid coordinates
     diag: object         # box diagonal, float32
+    tables: object = None   # tables.DeviceTables of a table form
+
+
+def _table_point(K, p, with_gradient=False):
+    """f (and grad f) of a table form at points p, over the rows of the cell
+    each point lies in (every row where it lies in no occupied cell)."""
+    import drjit as dr
+    Float64 = K.m64.Float
+    env, err = {}, {}
+    for i, v in enumerate("xyz"):
+        env[v] = Float64(p[i]) - K.centre[i]          # local coordinates
+        err[v] = K.m64.u * dr.abs(env[v])
+    Float = type(p.x)
+    slot, occupied = gridmod.slot_at(K.grid, [Float(env[v] + K.grid_origin[i])
+                                              for i, v in enumerate("xyz")])
+    all_rows = K.tables.all_rows(dr.width(p.x))
+    cell_rows = K.tables.ranges(slot, occupied)
+    rng = [(dr.select(occupied, s, s0), dr.select(occupied, e, e0))
+           for (s, e), (s0, e0) in zip(cell_rows, all_rows)]
+    dirs = [{"dx": float(a == 0), "dy": float(a == 1), "dz": float(a == 2)}
+            for a in range(3)] if with_gradient else [{"dx": 0.0, "dy": 0.0, "dz": 0.0}]
+    env.update(dirs[0])
+    return K.tables.point(env, err, rng, K.m64, directions=dirs)
 
 
 # ---------------------------------------------------------------------------
@@ -413,7 +480,9 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
     m, m64, dev = K.m, K.m64, K.grid
     Float64 = m64.Float
     n = max(dr.width(o), dr.width(d))
-    f, ge, he = surf.local_expr, surf.g_expr, surf.h_expr
+    tabled = K.tables is not None
+    if not tabled:
+        f, ge, he = surf.local_expr, surf.g_expr, surf.h_expr
     search_mode = surf.search
     if search_mode == "global":
         G_glob = Float64(dr.opaque(Float, surf.global_G()) * dr.squared_norm(d))
@@ -445,14 +514,18 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
     U = m64.u
     dirs = {"dx": d64[0], "dy": d64[1], "dz": d64[2]}
 
-    def point_values(s):
-        """F and g at s in float64 with their error bounds."""
+    def point_values(s, rng):
+        """F and g at s in float64 with their error bounds (a table form:
+        over the rows of the cell's ranges rng)."""
         s = Float64(s)
         env, err = dict(dirs), {}
         for i, v in enumerate("xyz"):
             sd = s * d64[i]
             env[v] = e64[i] + sd
             err[v] = U * (dr.abs(sd) + dr.abs(env[v]))
+        if tabled:
+            F, eF, (g,) = K.tables.point(env, err, rng, m64)
+            return F, eF, g, None
         if search_mode == "interval":
             # g's point value only steers Newton: no error bound needed.
             F, eF = evaluate_with_error(f, env, err, m64)
@@ -464,6 +537,10 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
         """Float32 interval of g (or h) over the local segment u = e + [lo, hi] d."""
         Si = bounds.segment_interval(ge if search_mode == "interval" else he, e32, d32, lo, hi, m)
         return Si.lo, Si.hi
+
+    def table_bounds(lo, hi, rng):
+        """Float32 intervals of g and F over the segment, over the cell's rows."""
+        return K.tables.segment(e32, d32, lo, hi, rng, m)
 
     def natural_bounds(lo, hi):
         """Float32 interval of F itself over the same segment."""
@@ -510,10 +587,14 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
     max_it = surf.max_iterations
 
     def body(mode, s_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min, bounded,
-             t_hit, hit, unres, evals, iters):
+             t_hit, hit, unres, evals, iters, rng):
         # ---- Walk: the next occupied cell (DDA, jumping over empty space) ----
         seek = mode == SEEK
-        found, ta, tb, stuck = gridmod.next_occupied(dev, g_org, d32, s_cur, span, seek)
+        found, ta, tb, stuck, slot = gridmod.next_occupied(dev, g_org, d32, s_cur, span, seek)
+        if tabled:      # the cell's rows
+            new = K.tables.ranges(slot, seek & found)
+            rng = tuple((dr.select(seek, ns, s_), dr.select(seek, ne, e_))
+                        for (ns, ne), (s_, e_) in zip(new, rng))
         s_cur = dr.select(seek, tb, s_cur)
         a = dr.select(seek, dr.maximum(ta - margin, 0.0), a)
         b = dr.select(seek, dr.minimum(tb + margin, span), b)
@@ -532,16 +613,22 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
         tm64 = 0.5 * (Float64(lo) + Float64(hi))
         r = Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22)
         t_eval = dr.select(searching, tm64, t_n)
-        F, eF, g, eg = point_values(t_eval)
+        F, eF, g, eg = point_values(t_eval, rng)
         busy = mode != DONE
         iters = iters + dr.select(busy, 1, 0)
         # Only searching lanes need interval bounds: a real branch skips the
         # work where a whole SIMD packet is refining. The global mode uses
         # its one G instead.
         local_bounds = searching & (search_mode != "global")
-        S_lo, S_hi = (Float64(v) for v in dr.if_stmt(
-            args=(lo, hi), cond=local_bounds, true_fn=segment_bounds,
-            false_fn=lambda lo, hi: (Float(0), Float(0)), label="lgshape_bounds"))
+        if tabled:
+            S_lo, S_hi, Fn_lo, Fn_hi = (Float64(v) for v in dr.if_stmt(
+                args=(lo, hi, rng), cond=local_bounds, true_fn=table_bounds,
+                false_fn=lambda lo, hi, rng: (Float(0), Float(0), Float(-dr.inf), Float(dr.inf)),
+                label="lgshape_bounds"))
+        else:
+            S_lo, S_hi = (Float64(v) for v in dr.if_stmt(
+                args=(lo, hi), cond=local_bounds, true_fn=segment_bounds,
+                false_fn=lambda lo, hi: (Float(0), Float(0)), label="lgshape_bounds"))
 
         # ---- Search step: exclude, bracket, split (or tiny) ----
         defined = dr.isfinite(F) & dr.isfinite(eF)
@@ -572,9 +659,13 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
         # poles), where it also tells whether F is bounded.
         mv_ok = defined & dr.isfinite(mv_lo) & dr.isfinite(mv_hi)
         need_fi = searching & ~mv_ok
-        Fi_lo, Fi_hi = (Float64(v) for v in dr.if_stmt(
-            args=(lo, hi), cond=need_fi, true_fn=natural_bounds,
-            false_fn=lambda lo, hi: (Float(-dr.inf), Float(dr.inf)), label="lgshape_natural"))
+        if tabled:      # computed with g's bounds, over the same rows
+            Fi_lo = dr.select(need_fi, Fn_lo, -dr.inf)
+            Fi_hi = dr.select(need_fi, Fn_hi, dr.inf)
+        else:
+            Fi_lo, Fi_hi = (Float64(v) for v in dr.if_stmt(
+                args=(lo, hi), cond=need_fi, true_fn=natural_bounds,
+                false_fn=lambda lo, hi: (Float(-dr.inf), Float(dr.inf)), label="lgshape_natural"))
         evals = evals + dr.select(busy, 1, 0) + dr.select(local_bounds, 1, 0) \
             + dr.select(need_fi, 1, 0)
         F_lo = dr.select(mv_ok, mv_lo, Fi_lo)
@@ -696,14 +787,15 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
                dr.select(tiny_b, SEARCH, mode)))))))
         mode = dr.select(iters >= max_it, DONE, mode)
         return (mode, s_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min, bounded,
-                t_hit, hit, unres, evals, iters)
+                t_hit, hit, unres, evals, iters, rng)
 
     def z(T):
         return dr.zeros(T, n)
     mode0 = dr.select(active, SEEK, DONE) + z(Int32)
     state = (mode0, z(Float), z(Float), z(Float), z(Int32), z(Int32),
              z(Float64), z(Float64), z(Float64), z(Int32), z(Int32), z(Float64), z(Bool),
-             dr.full(Float64, math.inf, n), z(Bool), z(Bool), z(UInt32), z(UInt32))
+             dr.full(Float64, math.inf, n), z(Bool), z(Bool), z(UInt32), z(UInt32),
+             tuple((z(UInt32), z(UInt32)) for _ in (K.tables.groups if tabled else ())))
     out = dr.while_loop(state=state, cond=lambda mode, *_: mode != DONE, body=body,
                         label="lgshape_search")
     s_hit, hit, unres, evals, iters = out[13:18]

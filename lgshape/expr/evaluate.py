@@ -94,14 +94,17 @@ def evaluate_interval(roots, env: dict, m):
     return out[0] if single else out
 
 
-def evaluate_with_error(roots, env: dict, env_error: dict, m):
+def evaluate_with_error(roots, env: dict, env_error: dict, m, safety: bool = True):
     """Point values of ``roots`` with bounds on their rounding error.
 
     ``env`` gives the computed variable values, ``env_error`` bounds on
     their errors (absolute; a missing name is exact). Returns a list of
     ``(value, error)`` pairs: |exact root at the exact inputs - value| <=
     error, by the op table's point-error rules (:mod:`lgshape.pointerror`).
-    ``m`` must provide ``u`` (unit roundoff) and ``eps_t``."""
+    ``m`` must provide ``u`` (unit roundoff) and ``eps_t``. The bounds are
+    multiplied by :data:`~lgshape.pointerror.SAFETY` once, at the end;
+    ``safety=False`` leaves that to the caller (for parts of a larger
+    evaluation, such as the rows of a table, so it is applied once)."""
     single = isinstance(roots, Expr)
     roots = [roots] if single else list(roots)
     val, err = {}, {}
@@ -122,5 +125,6 @@ def evaluate_with_error(roots, env: dict, env_error: dict, m):
             val[id(n)] = v
             err[id(n)] = op.error(m, v, *args, *errs, *extra)
     from ..pointerror import SAFETY
-    out = [(val[id(r)], err[id(r)] * SAFETY) for r in roots]
+    k = SAFETY if safety else 1.0
+    out = [(val[id(r)], err[id(r)] * k) for r in roots]
     return out[0] if single else out

@@ -1,0 +1,772 @@
+"""Templates and tables: expressions of many similar parts, evaluated per region.
+
+A modelled object is a combination of many parts of the same shape that
+differ only in their constants: the N spheres of a union, the N kernels of a
+blend. Such an f is held as a :class:`TableForm`:
+
+    f = outer(x, y, z, A0, A1, ...),   Aj = combine over the rows of its groups
+
+where each group is a *template* (an expression in x, y, z and parameters
+p0, p1, ...) with a table of parameter rows, and the combine is ``min``,
+``max``, ``add`` or ``smin`` (the polynomial smooth minimum with radius k,
+folded over the rows in order). The outer expression is small (the template
+structure only), so its compiled kernel does not depend on the number of
+rows or on their values.
+
+**Per-region rows.** For each pruning cell the build (:func:`build`) keeps
+only the rows that can matter there, proven by interval bounds over the
+(inflated) cell:
+
+- ``min``: a row whose lower bound exceeds another row's upper bound never
+  wins (``max`` alike);
+- ``add``: a row proven *exactly* zero on the cell (compact support: a
+  ``max(0, u)`` with u <= 0, a zero factor) adds nothing;
+- ``smin``: a row whose lower bound is at least k above an earlier row's
+  upper bound leaves the fold unchanged (the smooth minimum of a and b is
+  exactly min(a, b) when |a - b| >= k).
+
+On that cell, f equals the outer expression over the kept rows, exactly (no
+approximation): the search there evaluates those rows only. The build runs
+level by level over the octree on (cell, row) pairs, vectorised with numpy;
+a child cell starts from its parent's kept rows.
+
+:func:`find_tables` turns a plain expression into a TableForm where it holds
+an n-ary min / max / sum of at least :data:`MIN_ROWS` operands of the same
+structure (constants aside), so a union written out as text gets the same
+treatment as one built with :mod:`lgshape.primitives`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import interval as iv
+from .arraymath import NUMPY
+from .expr import evaluate_interval
+from .expr.node import Expr, const, maximum, minimum, topological, var
+from .expr import node as N
+
+#: Operands of one structure needed before an n-ary node becomes a table.
+MIN_ROWS = 16
+
+#: The combines of an aggregate, with their identity (the value over no rows).
+COMBINES = {"min": math.inf, "max": -math.inf, "add": 0.0, "smin": math.inf}
+
+A, B = var("a"), var("b")
+
+
+def combine_expr(op: str, k: float = 0.0) -> Expr:
+    """The combine of an accumulator a with a new row's value b, as an
+    expression (values, intervals, errors and derivatives then come from the
+    evaluators and the op table)."""
+    if op == "min":
+        return minimum(A, B)
+    if op == "max":
+        return maximum(A, B)
+    if op == "add":
+        return A + B
+    if op == "smin":
+        h = maximum(0.0, k - abs(A - B)) * (1.0 / k)
+        return minimum(A, B) - (0.25 * k) * h * h
+    raise ValueError(f"unknown combine {op!r} (one of {', '.join(COMBINES)})")
+
+
+def param(q: int) -> Expr:
+    return var(f"p{q}")
+
+
+@dataclass
+class Group:
+    """Rows of one template: ``template`` in x, y, z and p0..p{k-1};
+    ``params`` (n, k) float64."""
+    template: Expr
+    params: np.ndarray
+
+    def __post_init__(self):
+        self.params = np.ascontiguousarray(np.asarray(self.params, np.float64).reshape(len(self.params), -1))
+        if not np.all(np.isfinite(self.params)):
+            raise ValueError("primitive parameters must be finite")
+
+    @property
+    def rows(self) -> int:
+        return len(self.params)
+
+    @property
+    def width(self) -> int:
+        return self.params.shape[1]
+
+    def row_expr(self, i: int) -> Expr:
+        return substitute(self.template, {f"p{q}": const(float(v))
+                                          for q, v in enumerate(self.params[i])})
+
+
+@dataclass
+class Aggregate:
+    """Aj = combine(op) over every row of every group, group after group."""
+    op: str
+    groups: list
+    k: float = 0.0            # smin radius
+
+    def __post_init__(self):
+        if self.op not in COMBINES:
+            raise ValueError(f"unknown combine {self.op!r} (one of {', '.join(COMBINES)})")
+        if self.op == "smin" and not (math.isfinite(self.k) and self.k > 0):
+            raise ValueError(f"smooth union needs a positive finite radius k, got {self.k}")
+
+    @property
+    def combine(self) -> Expr:
+        return combine_expr(self.op, self.k)
+
+    @property
+    def rows(self) -> int:
+        return sum(g.rows for g in self.groups)
+
+
+@dataclass
+class TableForm:
+    """f = outer(x, y, z, A0, A1, ...) over aggregates (see the module notes)."""
+    outer: Expr
+    aggregates: list
+    _expr: Expr | None = field(default=None, repr=False)
+
+    @property
+    def rows(self) -> int:
+        return sum(a.rows for a in self.aggregates)
+
+    @property
+    def groups(self) -> list:
+        """(aggregate index, group) for every group, in evaluation order."""
+        return [(j, g) for j, a in enumerate(self.aggregates) for g in a.groups]
+
+    def expr(self) -> Expr:
+        """The whole f as one expression (the unpruned form: for oracles,
+        comparisons and the numpy evaluators)."""
+        if self._expr is None:
+            sub = {}
+            for j, a in enumerate(self.aggregates):
+                terms = [g.row_expr(i) for g in a.groups for i in range(g.rows)]
+                if a.op in ("min", "max", "add"):
+                    sub[f"A{j}"] = _balanced(a.op, terms)
+                else:
+                    acc = terms[0]
+                    comb = a.combine
+                    for t in terms[1:]:
+                        acc = substitute(comb, {"a": acc, "b": t})
+                    sub[f"A{j}"] = acc
+            self._expr = substitute(self.outer, sub)
+        return self._expr
+
+    def __repr__(self):
+        parts = ", ".join(f"A{j} = {a.op} of {a.rows} rows in {len(a.groups)} template(s)"
+                          for j, a in enumerate(self.aggregates))
+        return f"TableForm({self.outer!r}; {parts})"
+
+
+def _balanced(op, terms):
+    if len(terms) == 1:
+        return terms[0]
+    if op == "add":
+        while len(terms) > 1:
+            nxt = [terms[i] + terms[i + 1] for i in range(0, len(terms) - 1, 2)]
+            if len(terms) % 2:
+                nxt.append(terms[-1])
+            terms = nxt
+        return terms[0]
+    return (minimum if op == "min" else maximum)(*terms)
+
+
+def substitute(e: Expr, values: dict) -> Expr:
+    """e with variables replaced (name -> Expr), rebuilt with simplification."""
+    out = {}
+    for n in topological([e]):
+        if n.op == "var":
+            out[id(n)] = Expr.lift(values[n.param]) if n.param in values else n
+        elif n.op == "const":
+            out[id(n)] = n
+        else:
+            args = [out[id(a)] for a in n.args]
+            out[id(n)] = n if all(a is b for a, b in zip(args, n.args)) else _rebuild(n, args)
+    return out[id(e)]
+
+
+def _rebuild(n, args, op=None, param=None) -> Expr:
+    """Node n (or op with param) over new arguments, with simplification."""
+    op, param = (n.op, n.param) if n is not None else (op, param)
+    if op == "pow":
+        return N.power(args[0], param)
+    if op in ("add", "sub", "mul", "div"):
+        return getattr(N, op)(*args)
+    if op == "neg":
+        return N.neg(args[0])
+    if op == "min":
+        return N.minimum(*args)
+    if op == "max":
+        return N.maximum(*args)
+    if op == "abs":
+        return N.abs_(args[0])
+    if op in ("step", "kink"):
+        return getattr(N, op)(args[0])
+    return N.unary(op)(args[0])
+
+
+# ---------------------------------------------------------------------------
+# Finding tables in a plain expression
+# ---------------------------------------------------------------------------
+
+def _flatten(node: Expr):
+    """Operands of the n-ary min / max / sum rooted at node, as (sign, Expr)
+    (sign -1 for subtracted terms of a sum). Iterative."""
+    op = "add" if node.op == "sub" else node.op
+    out, stack = [], [(1, node)]
+    while stack:
+        s, n = stack.pop()
+        if op == "add" and n.op in ("add", "sub"):
+            stack.append((-s if n.op == "sub" else s, n.args[1]))
+            stack.append((s, n.args[0]))
+        elif op != "add" and n.op == op:
+            stack.append((s, n.args[1]))
+            stack.append((s, n.args[0]))
+        else:
+            out.append((s, n))
+    return out
+
+
+def _structure(e: Expr):
+    """(key, constants): e's DAG with its constants abstracted, as a
+    hashable key, and the constants in the key's order."""
+    nodes = topological([e])
+    index, key, consts = {}, [], []
+    for i, n in enumerate(nodes):
+        index[id(n)] = i
+        if n.op == "const":
+            key.append(("c",))
+            consts.append(n.param)
+        elif n.op == "var":
+            key.append(("v", n.param))
+        else:
+            key.append((n.op, n.param, *(index[id(a)] for a in n.args)))
+    return tuple(key), consts
+
+
+def _template(key) -> tuple[Expr, int]:
+    """The template expression of a structure key (constants -> p0, p1, ...)."""
+    built, q = [], 0
+    for item in key:
+        if item[0] == "c":
+            built.append(param(q))
+            q += 1
+        elif item[0] == "v":
+            built.append(var(item[1]))
+        else:
+            op, prm, *args = item
+            built.append(_rebuild(None, [built[a] for a in args], op, prm))
+    return built[-1], q
+
+
+def _fold_uniform(template: Expr, params: np.ndarray):
+    """Parameters equal on every row become constants again (no gather for
+    them in the kernel); the others are renumbered p0, p1, ..."""
+    uniform = np.all(params == params[:1], axis=0)
+    values, keep = {}, []
+    for q in range(params.shape[1]):
+        if uniform[q]:
+            values[f"p{q}"] = const(float(params[0, q]))
+        else:
+            values[f"p{q}"] = param(len(keep))
+            keep.append(q)
+    return substitute(template, values), params[:, keep]
+
+
+def make_group(template: Expr, params) -> Group:
+    """A group with its uniform parameters folded into the template."""
+    params = np.asarray(params, np.float64)
+    t, p = _fold_uniform(template, params.reshape(len(params), -1))
+    return Group(t, p)
+
+
+def find_tables(f: Expr, min_rows: int = MIN_ROWS) -> TableForm | None:
+    """A TableForm equal to f where f holds an n-ary min, max or sum with at
+    least ``min_rows`` operands of one structure; None otherwise."""
+    nodes = topological([f])
+    parent_ops: dict = {}
+    for n in nodes:
+        for a in n.args:
+            parent_ops.setdefault(id(a), set()).add("add" if n.op == "sub" else n.op)
+    replaced, aggregates = {}, []
+    for n in nodes:
+        op = "add" if n.op == "sub" else n.op
+        if op not in ("min", "max", "add"):
+            continue
+        if parent_ops.get(id(n), set()) == {op}:
+            continue                      # inside a larger cluster of the same op
+        operands = _flatten(n)
+        if len(operands) < min_rows:
+            continue
+        by_key: dict = {}
+        for s, e in operands:
+            key, consts = _structure(e)
+            by_key.setdefault((s, key), []).append(consts)
+        tables = {k: v for k, v in by_key.items() if len(v) >= min_rows}
+        if not tables:
+            continue
+        groups = []
+        for (s, key), rows in tables.items():
+            t, _ = _template(key)
+            groups.append(make_group(t if s > 0 else -t, np.array(rows, np.float64)))
+        rest = [(s, e) for s, e in operands if (s, _structure(e)[0]) not in tables]
+        aggregates.append(Aggregate(op, groups))
+        replaced[id(n)] = (len(aggregates) - 1, rest, op)
+    if not aggregates:
+        return None
+    # Rebuild the outer expression with the aggregates as variables A0, A1...
+    out = {}
+    for n in nodes:
+        if id(n) in replaced:
+            j, rest, op = replaced[id(n)]
+            acc = var(f"A{j}")
+            for s, e in rest:
+                term = out.get(id(e), e)
+                acc = (acc + term if s > 0 else acc - term) if op == "add" else \
+                    (minimum(acc, term) if op == "min" else maximum(acc, term))
+            out[id(n)] = acc
+        elif n.op in ("const", "var"):
+            out[id(n)] = n
+        else:
+            args = [out.get(id(a), a) for a in n.args]
+            out[id(n)] = n if all(a is b for a, b in zip(args, n.args)) else _rebuild(n, args)
+    return TableForm(out[id(f)], aggregates, _expr=f)
+
+
+# ---------------------------------------------------------------------------
+# Per-cell rows: interval rules (numpy float64, host)
+# ---------------------------------------------------------------------------
+
+def row_intervals(group: Group, rows, lo, hi):
+    """Interval of the template over boxes [lo, hi] (P, 3) for rows (P,),
+    and per node exactly-zero flags at the root: (lo, hi, zero)."""
+    env = {v: iv.Interval(lo[:, i], hi[:, i]) for i, v in enumerate("xyz")}
+    P = group.params[rows]
+    for q in range(group.width):
+        env[f"p{q}"] = P[:, q]
+    nodes = topological([group.template])
+    with np.errstate(all="ignore"):
+        vals = evaluate_interval(nodes, env, NUMPY)
+    zero = _exact_zero(nodes, vals, env, len(rows))
+    r = vals[-1]
+    rlo = np.broadcast_to(r.lo, len(rows)).astype(np.float64)
+    rhi = np.broadcast_to(r.hi, len(rows)).astype(np.float64)
+    # NaN bounds say nothing: the row may take any value.
+    rlo = np.where(np.isnan(rlo), -np.inf, rlo)
+    rhi = np.where(np.isnan(rhi), np.inf, rhi)
+    # An empty interval (undefined on the whole box) is kept as unknown.
+    empty = rlo > rhi
+    rlo, rhi = np.where(empty, -np.inf, rlo), np.where(empty, np.inf, rhi)
+    return rlo, rhi, zero
+
+
+def _exact_zero(nodes, vals, env, P):
+    """Per node, where its value is exactly 0 at every point of the box (a
+    structural proof from the intervals of its arguments)."""
+    z, ival = {}, {id(n): v for n, v in zip(nodes, vals)}
+    for n in nodes:
+        if n.op == "const":
+            z[id(n)] = np.full(P, n.param == 0.0)
+        elif n.op == "var":
+            val = env.get(n.param)
+            z[id(n)] = (np.broadcast_to(val == 0.0, P) if not isinstance(val, iv.Interval)
+                        else np.zeros(P, bool))
+        else:
+            za = [z[id(a)] for a in n.args]
+            ia = [iv.promote(NUMPY, ival[id(a)]) for a in n.args]
+            finite = [np.isfinite(i.lo) & np.isfinite(i.hi) for i in ia]
+            op = n.op
+            if op == "max":
+                r = (za[0] & (ia[1].hi <= 0)) | (za[1] & (ia[0].hi <= 0))
+            elif op == "min":
+                r = (za[0] & (ia[1].lo >= 0)) | (za[1] & (ia[0].lo >= 0))
+            elif op == "mul":
+                r = (za[0] & finite[1]) | (za[1] & finite[0])
+            elif op in ("add", "sub"):
+                r = za[0] & za[1]
+            elif op == "div":
+                r = za[0] & finite[1] & ((ia[1].lo > 0) | (ia[1].hi < 0))
+            elif op == "pow":
+                r = za[0] if n.param > 0 else np.zeros(P, bool)
+            elif op in ("neg", "abs", "sqrt"):
+                r = za[0]
+            else:
+                r = np.zeros(P, bool)
+            z[id(n)] = np.broadcast_to(r, P)
+    return z[id(nodes[-1])]
+
+
+
+#: Relative inflation of cells for the row lists: twice the occupancy test's
+#: (grid.INFLATE), since a search segment reaches its margin past the cell.
+ROW_INFLATE = 2e-3
+
+_CHILDREN = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)])
+
+
+@dataclass
+class CellRows:
+    """The build's result: occupied fine cells and, per group (in
+    :attr:`TableForm.groups` order), the rows kept on each of them as pairs
+    (index into ``cells``, row), sorted by cell then row."""
+    cells: np.ndarray          # (n, 3) int64
+    pair_cell: list            # per group: (P,) int64
+    pair_row: list             # per group: (P,) int64
+    tested: int                # cells tested
+    pairs_tested: int          # (cell, row) intervals evaluated
+
+
+def _segments(cell):
+    """Start of each run of equal values in a sorted array."""
+    if len(cell) == 0:
+        return np.zeros(0, np.int64)
+    return np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+
+
+def _seg_reduce(ufunc, cell, v, n, identity):
+    out = np.full(n, identity, np.float64)
+    s = _segments(cell)
+    if len(s):
+        out[cell[s]] = ufunc.reduceat(v, s)
+    return out
+
+
+def _seg_count(cell, n):
+    return np.bincount(cell, minlength=n) if len(cell) else np.zeros(n, np.int64)
+
+
+def _seg_exclusive_cummin(cell, v):
+    """Per run of equal cells, the min of the values before each one."""
+    out = np.concatenate([[np.inf], v[:-1]]) if len(v) else v.copy()
+    if len(v):
+        out[_segments(cell)] = np.inf
+    same = cell
+    step = 1
+    while step < len(v):
+        prev = np.concatenate([np.full(step, np.inf), out[:-step]])
+        ok = np.concatenate([np.zeros(step, bool), same[step:] == same[:-step]])
+        out = np.where(ok, np.minimum(out, prev), out)
+        step *= 2
+    return out
+
+
+def _prune_aggregate(agg, ivals, ncells):
+    """Keep masks (per group) and the aggregate's interval per cell."""
+    cells = [c for c, _, _, _ in ivals]
+    if agg.op in ("min", "smin"):
+        best_hi = np.full(ncells, np.inf)
+        for c, lo, hi, _ in ivals:
+            best_hi = np.minimum(best_hi, _seg_reduce(np.minimum, c, hi, ncells, np.inf))
+    if agg.op == "max":
+        best_lo = np.full(ncells, -np.inf)
+        for c, lo, hi, _ in ivals:
+            best_lo = np.maximum(best_lo, _seg_reduce(np.maximum, c, lo, ncells, -np.inf))
+    keeps = []
+    before = np.full(ncells, np.inf)          # smin: min upper bound of earlier groups
+    for c, lo, hi, zero in ivals:
+        if agg.op == "min":
+            keep = lo <= best_hi[c]
+        elif agg.op == "max":
+            keep = hi >= best_lo[c]
+        elif agg.op == "add":
+            keep = ~zero
+        else:
+            prior = np.minimum(_seg_exclusive_cummin(c, hi), before[c])
+            keep = ~(lo >= prior + agg.k)
+            before = np.minimum(before, _seg_reduce(np.minimum, c, hi, ncells, np.inf))
+        keeps.append(keep)
+    # The aggregate's interval over each cell, from its kept rows.
+    if agg.op in ("min", "smin", "max"):
+        red = np.minimum if agg.op != "max" else np.maximum
+        ident = np.inf if agg.op != "max" else -np.inf
+        a_lo, a_hi = np.full(ncells, ident), np.full(ncells, ident)
+        count = np.zeros(ncells, np.int64)
+        for (c, lo, hi, _), keep in zip(ivals, keeps):
+            a_lo = red(a_lo, _seg_reduce(red, c[keep], lo[keep], ncells, ident))
+            a_hi = red(a_hi, _seg_reduce(red, c[keep], hi[keep], ncells, ident))
+            count += _seg_count(c[keep], ncells)
+        if agg.op == "smin":                  # each fold step lowers by at most k / 4
+            a_lo = a_lo - np.maximum(count - 1, 0) * (0.25 * agg.k)
+    else:
+        a_lo, a_hi, mag = np.zeros(ncells), np.zeros(ncells), np.zeros(ncells)
+        count = np.zeros(ncells, np.int64)
+        for (c, lo, hi, _), keep in zip(ivals, keeps):
+            a_lo += _seg_reduce(np.add, c[keep], lo[keep], ncells, 0.0)
+            a_hi += _seg_reduce(np.add, c[keep], hi[keep], ncells, 0.0)
+            mag += _seg_reduce(np.add, c[keep], np.maximum(np.abs(lo[keep]), np.abs(hi[keep])),
+                               ncells, 0.0)
+            count += _seg_count(c[keep], ncells)
+        slack = (count + 2) * 2.0**-52 * mag + 2.0**-1020   # the sum's rounding
+        a_lo, a_hi = a_lo - slack, a_hi + slack
+    return keeps, a_lo, a_hi
+
+
+def build(tf: TableForm, lo, hi, depth: int) -> CellRows:
+    """Occupied cells and per-cell rows, level by level (see the module notes)."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    groups = tf.groups
+    cells = np.zeros((1, 3), np.int64)
+    pair_cell = [np.zeros(g.rows, np.int64) for _, g in groups]
+    pair_row = [np.arange(g.rows, dtype=np.int64) for _, g in groups]
+    tested = pairs_tested = 0
+    for level in range(depth + 1):
+        n = len(cells)
+        size = (hi - lo) / 2 ** level
+        clo = lo + cells * size - ROW_INFLATE * size
+        chi = lo + (cells + 1) * size + ROW_INFLATE * size
+        tested += n
+        # Interval of every (cell, row) pair, then the aggregate rules.
+        ivals = []
+        for gi, (_, g) in enumerate(groups):
+            c, r = pair_cell[gi], pair_row[gi]
+            pairs_tested += len(c)
+            rlo, rhi, zero = row_intervals(g, r, clo[c], chi[c]) if len(c) else \
+                (np.zeros(0), np.zeros(0), np.zeros(0, bool))
+            ivals.append((c, rlo, rhi, zero))
+        env = {v: iv.Interval(clo[:, i], chi[:, i]) for i, v in enumerate("xyz")}
+        start = 0
+        for j, agg in enumerate(tf.aggregates):
+            k = len(agg.groups)
+            keeps, a_lo, a_hi = _prune_aggregate(agg, ivals[start:start + k], n)
+            for gi in range(start, start + k):
+                keep = keeps[gi - start]
+                pair_cell[gi], pair_row[gi] = pair_cell[gi][keep], pair_row[gi][keep]
+            env[f"A{j}"] = iv.Interval(a_lo, a_hi)
+            start += k
+        with np.errstate(all="ignore"):
+            fi = evaluate_interval(tf.outer, env, NUMPY)
+        flo = np.broadcast_to(fi.lo, n)
+        fhi = np.broadcast_to(fi.hi, n)
+        occupied = ~((flo > 0) | (fhi < 0))           # NaN bounds keep the cell
+        rank = np.cumsum(occupied) - 1
+        cells = cells[occupied]
+        for gi in range(len(groups)):
+            keep = occupied[pair_cell[gi]]
+            pair_cell[gi], pair_row[gi] = rank[pair_cell[gi][keep]], pair_row[gi][keep]
+        if level == depth:
+            break
+        cells = (2 * cells[:, None, :] + _CHILDREN[None]).reshape(-1, 3)
+        for gi in range(len(groups)):
+            c = (8 * pair_cell[gi][:, None] + np.arange(8)[None]).reshape(-1)
+            r = np.repeat(pair_row[gi], 8)
+            order = np.argsort(c, kind="stable")
+            pair_cell[gi], pair_row[gi] = c[order], r[order]
+    return CellRows(cells, pair_cell, pair_row, tested, pairs_tested)
+
+
+# ---------------------------------------------------------------------------
+# Numpy evaluation (host): f at points, in chunks of rows
+# ---------------------------------------------------------------------------
+
+def evaluate_points(tf: TableForm, p, chunk: int = 256) -> np.ndarray:
+    """f at points p (n, 3), float64, over every row (the unpruned form,
+    without building the whole expression)."""
+    from .expr import evaluate
+    p = np.asarray(p, np.float64).reshape(-1, 3)
+    env = {v: p[:, i, None] for i, v in enumerate("xyz")}
+    out = dict((v, p[:, i]) for i, v in enumerate("xyz"))
+    with np.errstate(all="ignore"):
+        for j, agg in enumerate(tf.aggregates):
+            acc = None
+            for g in agg.groups:
+                for s in range(0, g.rows, chunk):
+                    e = dict(env)
+                    for q in range(g.width):
+                        e[f"p{q}"] = g.params[None, s:s + chunk, q]
+                    v = np.broadcast_to(evaluate(g.template, e, NUMPY),
+                                        (len(p), min(chunk, g.rows - s)))
+                    if agg.op in ("min", "max", "add"):
+                        red = {"min": np.min, "max": np.max, "add": np.sum}[agg.op](v, axis=1)
+                        acc = red if acc is None else evaluate(agg.combine, {"a": acc, "b": red}, NUMPY)
+                    else:
+                        for col in range(v.shape[1]):
+                            acc = v[:, col] if acc is None else \
+                                evaluate(agg.combine, {"a": acc, "b": v[:, col]}, NUMPY)
+            out[f"A{j}"] = acc
+        return np.broadcast_to(evaluate(tf.outer, out, NUMPY), len(p)).astype(np.float64)
+
+
+# ---------------------------------------------------------------------------
+# Device side (Dr.Jit): per-cell row ranges and the evaluations over them
+# ---------------------------------------------------------------------------
+
+class DeviceTables:
+    """A TableForm's rows on one Dr.Jit backend, ordered by pruning cell.
+
+    Per group: the parameters of the (cell, row) pairs, cell after cell
+    (float64 for point values; float32 for intervals, as lower and upper
+    roundings where a value is not a float32), and ``start`` with the pairs
+    of cell slot s at [start[s], start[s + 1]). A cell's slot is its place in
+    the brick map (brick * 64 + bit); slot ``n_slots`` holds every row (for
+    points outside the occupied cells). Constants are opaque: another table
+    of the same templates reuses the compiled kernels."""
+
+    def __init__(self, tf: TableForm, rows: CellRows, grid, centre, Float):
+        import drjit as dr
+        from .expr.diff import DX, DY, DZ, derivative
+        from .expr.shift import localize
+        from .grid import _brick_of
+        self.Float = Float
+        self.Float64 = dr.float64_array_t(Float)
+        UInt32 = dr.uint32_array_t(Float)
+        R = grid.resolution
+        b, bit = _brick_of(rows.cells, R)
+        slot_of_cell = (grid.top[b].astype(np.int64) - 1) * 64 + bit
+        self.n_slots = int(len(grid.bricks) // 2) * 64
+        centre = [float(c) for c in centre]
+        seeds = {"x": DX, "y": DY, "z": DZ}
+        self.groups = []
+        for gi, (j, g) in enumerate(tf.groups):
+            slot = slot_of_cell[rows.pair_cell[gi]]
+            order = np.lexsort((rows.pair_row[gi], slot))
+            slot, prow = slot[order], rows.pair_row[gi][order]
+            prow = np.concatenate([prow, np.arange(g.rows)])         # the all-rows slot
+            start = np.searchsorted(slot, np.arange(self.n_slots + 1)).astype(np.int64)
+            start = np.concatenate([start, [len(prow)]])
+            t = localize(g.template, centre)
+            P = g.params[prow]
+            exact = bool(np.all(P.astype(np.float32).astype(np.float64) == P))
+            p32 = P.astype(np.float32)
+            lo32 = np.where(p32.astype(np.float64) > P, np.nextafter(p32, np.float32(-np.inf)), p32)
+            hi32 = np.where(p32.astype(np.float64) < P, np.nextafter(p32, np.float32(np.inf)), p32)
+            self.groups.append(_DeviceGroup(
+                aggregate=j, template=t, g=derivative(t, seeds),
+                start=UInt32(start.astype(np.uint32)),
+                p64=[self.Float64(np.ascontiguousarray(P[:, q])) for q in range(g.width)],
+                p32=[(Float(np.ascontiguousarray(lo32[:, q])),
+                      None if exact else Float(np.ascontiguousarray(hi32[:, q])))
+                     for q in range(g.width)],
+                width=g.width))
+        self.aggregates = tf.aggregates
+        self.outer = localize(tf.outer, centre)
+        gseeds = dict(seeds, **{f"A{j}": var(f"gA{j}") for j in range(len(tf.aggregates))})
+        self.outer_g = derivative(self.outer, gseeds)
+        self.combines = [(a.combine, derivative(a.combine, {"a": var("ga"), "b": var("gb")}))
+                         for a in tf.aggregates]
+
+    # -- ranges ---------------------------------------------------------------
+    def ranges(self, slot, active):
+        """(start, end) per group for the cells of slot (UInt32), where active."""
+        import drjit as dr
+        UInt32 = dr.uint32_array_t(self.Float)
+        out = []
+        for grp in self.groups:
+            s = dr.gather(UInt32, grp.start, slot, active)
+            e = dr.gather(UInt32, grp.start, slot + 1, active)
+            out.append((s, dr.select(active, e, s)))
+        return out
+
+    def all_rows(self, n):
+        import drjit as dr
+        return self.ranges(dr.full(dr.uint32_array_t(self.Float), self.n_slots, n), True)
+
+    # -- point values -----------------------------------------------------------
+    def point(self, env, err, rng, m64, directions=None):
+        """F with its error bound and dF/dt along each direction (dicts of dx,
+        dy, dz; default: the one in env), over the rows of rng.
+        Returns (F, eF, [g, ...])."""
+        import drjit as dr
+        from .expr import evaluate, evaluate_with_error
+        Float64 = self.Float64
+        dirs = directions or [{k: env[k] for k in ("dx", "dy", "dz")}]
+        nd = len(dirs)
+        vals, errs, grads = {}, {}, [dict() for _ in dirs]
+        for j, agg in enumerate(self.aggregates):
+            comb, comb_g = self.combines[j]
+            first = dr.full(dr.mask_t(Float64), True, dr.width(env["x"]))
+            v = dr.zeros(Float64, dr.width(env["x"]))
+            state = (v, Float64(v), *[Float64(v) for _ in range(nd)], first)
+            for grp, (s, e) in zip(self.groups, rng):
+                if grp.aggregate != j:
+                    continue
+
+                def body(i, v, ev, *rest, grp=grp, comb=comb, comb_g=comb_g):
+                    gs, first = rest[:-1], rest[-1]
+                    penv, perr = dict(env), dict(err)
+                    for q in range(grp.width):
+                        penv[f"p{q}"] = dr.gather(Float64, grp.p64[q], i)
+                    tv, te = evaluate_with_error(grp.template, penv, perr, m64, safety=False)
+                    tg = [evaluate(grp.g, {**penv, **dd}, m64) for dd in dirs]
+                    cv, ce = evaluate_with_error(comb, {"a": v, "b": tv}, {"a": ev, "b": te}, m64,
+                                                 safety=False)
+                    cg = [evaluate(comb_g, {"a": v, "b": tv, "ga": ga, "gb": gb}, m64)
+                          for ga, gb in zip(gs, tg)]
+                    v = dr.select(first, tv, cv)
+                    ev = dr.select(first, te, ce)
+                    gs = [dr.select(first, b_, c_) for b_, c_ in zip(tg, cg)]
+                    return (i + 1, v, ev, *gs, dr.mask_t(Float64)(False) & first)
+
+                out = dr.while_loop(state=(s, *state), cond=lambda i, *_, e=e: i < e,
+                                    body=body, label="lgshape_rows")
+                state = out[1:]
+            v, ev, *gs = state[:-1]
+            first = state[-1]
+            ident = COMBINES[agg.op]
+            vals[f"A{j}"] = dr.select(first, ident, v)
+            errs[f"A{j}"] = dr.select(first, 0.0, ev)
+            for k in range(nd):
+                grads[k][f"gA{j}"] = dr.select(first, 0.0, gs[k])
+        F, eF = evaluate_with_error(self.outer, {**env, **vals}, {**err, **errs}, m64)
+        g = [evaluate(self.outer_g, {**env, **vals, **dd, **gk}, m64) for dd, gk in zip(dirs, grads)]
+        return F, eF, g
+
+    # -- intervals over a segment -------------------------------------------------
+    def segment(self, e32, d32, lo, hi, rng, m):
+        """Float32 intervals of g = dF/dt and of F over the local segment
+        e + [lo, hi] d: (g_lo, g_hi, F_lo, F_hi)."""
+        import drjit as dr
+        from .bounds import segment_env
+        from .expr import evaluate_interval
+        Float = self.Float
+        env = segment_env(e32, d32, lo, hi, m)
+        n = dr.width(lo)
+        avals, agrads = {}, {}
+        for j, agg in enumerate(self.aggregates):
+            comb, comb_g = self.combines[j]
+            z = dr.zeros(Float, n)
+            state = (z, Float(z), Float(z), Float(z), dr.full(dr.mask_t(Float), True, n))
+            for grp, (s, e) in zip(self.groups, rng):
+                if grp.aggregate != j:
+                    continue
+
+                def body(i, vlo, vhi, glo, ghi, first, grp=grp, comb=comb, comb_g=comb_g):
+                    penv = dict(env)
+                    for q in range(grp.width):
+                        plo, phi = grp.p32[q]
+                        a = dr.gather(Float, plo, i)
+                        penv[f"p{q}"] = a if phi is None else \
+                            iv.Interval(a, dr.gather(Float, phi, i))
+                    tv, tg = evaluate_interval([grp.template, grp.g], penv, m)
+                    acc = iv.Interval(vlo, vhi)
+                    cv, cg = evaluate_interval([comb, comb_g], {
+                        "a": acc, "b": tv, "ga": iv.Interval(glo, ghi), "gb": tg}, m)
+                    return (i + 1, dr.select(first, tv.lo, cv.lo), dr.select(first, tv.hi, cv.hi),
+                            dr.select(first, tg.lo, cg.lo), dr.select(first, tg.hi, cg.hi),
+                            dr.mask_t(Float)(False) & first)
+
+                out = dr.while_loop(state=(s, *state), cond=lambda i, *_, e=e: i < e,
+                                    body=body, label="lgshape_rows_iv")
+                state = out[1:]
+            vlo, vhi, glo, ghi, first = state
+            ident = COMBINES[agg.op]
+            avals[f"A{j}"] = iv.Interval(dr.select(first, ident, vlo), dr.select(first, ident, vhi))
+            agrads[f"gA{j}"] = iv.Interval(dr.select(first, 0.0, glo), dr.select(first, 0.0, ghi))
+        Fi, gi = evaluate_interval([self.outer, self.outer_g], {**env, **avals, **agrads}, m)
+        return gi.lo, gi.hi, Fi.lo, Fi.hi
+
+
+@dataclass
+class _DeviceGroup:
+    aggregate: int
+    template: Expr
+    g: Expr
+    start: object
+    p64: list
+    p32: list
+    width: int
