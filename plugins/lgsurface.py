@@ -15,6 +15,7 @@ from __future__ import annotations
 import inspect
 import math
 import numbers
+import os
 
 import numpy as np
 
@@ -29,8 +30,8 @@ from lgshape import surfaces
 #: left (the root search would find it again within its tolerance).
 SELF_HIT_EPSILON = 1e-4
 
-_OWN = ("expr", "surface", "bbox_min", "bbox_max", "L", "G", "depth", "to_world",
-        "flip_normals")
+_OWN = ("expr", "expr_file", "surface", "primitives", "combine", "smoothness", "threshold",
+        "bbox_min", "bbox_max", "L", "G", "depth", "to_world", "flip_normals")
 
 
 class LGSurface(mi.Mesh):
@@ -54,6 +55,20 @@ class LGSurface(mi.Mesh):
          gyroid, spikes). Its numeric parameters are plain properties named
          as in the Python function, e.g. ``<float name="R" value="1"/>`` for
          the torus.
+     * - expr_file
+       - |string|
+       - A file holding the expression (any length; found like Mitsuba's
+         other files, e.g. beside the scene).
+     * - primitives
+       - |string|
+       - A primitives file (:func:`lgshape.primitives.load`: one primitive
+         per line, ``sphere cx cy cz r``, ``capsule ax ay az bx by bz r``,
+         ``box cx cy cz hx hy hz [rounding]``, ``torus cx cy cz R r``,
+         optionally ``w=weight``), combined by ``combine``: ``union``
+         (default), ``smooth_union`` (radius ``smoothness``) or ``blend``
+         (soft objects, iso-level ``threshold``, default 0.5). The box
+         defaults to the primitives' extent. Thousands of primitives are
+         fine: each pruning cell evaluates only those that matter there.
      * - bbox_min, bbox_max
        - |point|
        - The box, in object space, outside which the surface is clipped.
@@ -258,9 +273,21 @@ class LGSurface(mi.Mesh):
 
 def _read_surface(props):
     """-> (description, expression or Implicit, names of the library parameters)."""
+    given = [k for k in ("expr", "expr_file", "surface", "primitives") if k in props]
+    if len(given) > 1:
+        raise ValueError(f"lgsurface: give one of 'expr', 'expr_file', 'surface' or "
+                         f"'primitives', not {' and '.join(repr(k) for k in given)}")
+    if "primitives" in props:
+        return _read_primitives(props)
+    if "expr_file" in props:
+        path = _resolve(props.get("expr_file"), "expr_file")
+        with open(path) as fh:
+            text = fh.read()
+        try:
+            return f"expr_file '{path}'", lgshape.parse(text), ()
+        except lgshape.ParseError as err:
+            raise ValueError(f"lgsurface: malformed expression in '{path}': {err}") from None
     has_expr, has_surface = "expr" in props, "surface" in props
-    if has_expr and has_surface:
-        raise ValueError("lgsurface: give either 'expr' or 'surface', not both")
     if has_expr:
         text = props.get("expr")
         try:
@@ -268,8 +295,8 @@ def _read_surface(props):
         except lgshape.ParseError as err:
             raise ValueError(f"lgsurface: malformed 'expr': {err}") from None
     if not has_surface:
-        raise ValueError("lgsurface: needs 'expr' (an expression) or 'surface' "
-                         f"(one of {', '.join(surfaces.LIBRARY)})")
+        raise ValueError("lgsurface: needs 'expr' (an expression), 'expr_file', 'primitives' "
+                         f"(a primitives file) or 'surface' (one of {', '.join(surfaces.LIBRARY)})")
     name = props.get("surface")
     if name not in surfaces.LIBRARY:
         raise ValueError(f"lgsurface: unknown surface '{name}'; the library has "
@@ -294,6 +321,35 @@ def _read_surface(props):
     return f"{name}({args})", fn(**kwargs), tuple(p.name for p in numeric)
 
 
+def _resolve(name, what):
+    path = str(mi.Thread.thread().file_resolver().resolve(name))
+    if not os.path.isfile(path):
+        raise ValueError(f"lgsurface: '{what}' file not found: {name}")
+    return path
+
+
+def _read_primitives(props):
+    from lgshape import primitives
+    path = _resolve(props.get("primitives"), "primitives")
+    combine = props.get("combine", "union")
+    kw = {}
+    if combine == "smooth_union":
+        kw["k"] = _positive(props, "smoothness")
+        if kw["k"] is None:
+            raise ValueError("lgsurface: combine 'smooth_union' needs 'smoothness' (a radius)")
+    elif combine == "blend" and "threshold" in props:
+        kw["threshold"] = _positive(props, "threshold")
+    for k in ("smoothness", "threshold"):
+        if k in props and not ((k == "smoothness" and combine == "smooth_union")
+                               or (k == "threshold" and combine == "blend")):
+            raise ValueError(f"lgsurface: '{k}' does not apply to combine '{combine}'")
+    try:
+        tf = primitives.load(path, combine, **kw)
+    except ValueError as err:
+        raise ValueError(f"lgsurface: {err}") from None
+    return f"primitives '{os.path.basename(path)}' ({combine}, {tf.rows})", tf, ()
+
+
 def _read_bbox(props, implicit):
     given = [k in props for k in ("bbox_min", "bbox_max")]
     if all(given):
@@ -305,7 +361,7 @@ def _read_bbox(props, implicit):
     if any(given):
         missing = "bbox_max" if given[0] else "bbox_min"
         raise ValueError(f"lgsurface: '{missing}' is missing (give both bbox_min and bbox_max)")
-    if isinstance(implicit, surfaces.Implicit):
+    if isinstance(implicit, surfaces.Implicit) or getattr(implicit, "bbox", None) is not None:
         return implicit.bbox
     raise ValueError("lgsurface: an 'expr' needs a box: give 'bbox_min' and 'bbox_max' "
                      "(points, e.g. <point name=\"bbox_min\" value=\"-1.5, -1.5, -1.5\"/>)")
