@@ -67,6 +67,17 @@ class Part:
         if not np.all(np.isfinite(self.rows)):
             bad = int(np.argwhere(~np.all(np.isfinite(self.rows), 1))[0, 0])
             raise ValueError(f"{self.kind} {bad}: parameters must be finite, got {self.rows[bad]}")
+        r = self.rows
+        radius = {"sphere": [3], "capsule": [6], "torus": [3, 4], "box": [3, 4, 5]}[self.kind]
+        for q in radius:
+            bad = np.flatnonzero(~(r[:, q] > 0))
+            if len(bad):
+                raise ValueError(f"{self.kind} {bad[0]}: {cols[q]} must be positive, got {r[bad[0], q]}")
+        if self.kind == "torus" and np.any(r[:, 4] >= r[:, 3]):
+            raise ValueError(f"torus {np.flatnonzero(r[:, 4] >= r[:, 3])[0]}: r must be smaller than R")
+        if self.kind == "box" and np.any((r[:, 6] < 0) | (r[:, 6] > r[:, 3:6].min(1))):
+            raise ValueError(f"box {np.flatnonzero((r[:, 6] < 0) | (r[:, 6] > r[:, 3:6].min(1)))[0]}: "
+                             "rounding must be between 0 and the smallest half size")
         if self.weights is not None:
             self.weights = np.broadcast_to(np.asarray(self.weights, np.float64), len(self.rows)).copy()
 

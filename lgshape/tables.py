@@ -604,13 +604,17 @@ class DeviceTables:
     roundings where a value is not a float32), and ``start`` with the pairs
     of cell slot s at [start[s], start[s + 1]). A cell's slot is its place in
     the brick map (brick * 64 + bit); slot ``n_slots`` holds every row (for
-    points outside the occupied cells). Constants are opaque: another table
-    of the same templates reuses the compiled kernels."""
+    points outside the occupied cells).
+
+    The search works in coordinates local to the box centre c; templates are
+    evaluated at x = x_local + c with c an opaque value (its rounding in the
+    error bound and the intervals), not folded into the templates, so the
+    compiled code depends on the templates only: another table of the same
+    templates (other rows, values, box) reuses the compiled kernels."""
 
     def __init__(self, tf: TableForm, rows: CellRows, grid, centre, Float):
         import drjit as dr
         from .expr.diff import DX, DY, DZ, derivative
-        from .expr.shift import localize
         from .grid import _brick_of
         self.Float = Float
         self.Float64 = dr.float64_array_t(Float)
@@ -619,7 +623,12 @@ class DeviceTables:
         b, bit = _brick_of(rows.cells, R)
         slot_of_cell = (grid.top[b].astype(np.int64) - 1) * 64 + bit
         self.n_slots = int(len(grid.bricks) // 2) * 64
-        centre = [float(c) for c in centre]
+        c64 = np.asarray(centre, np.float64)
+        c32 = c64.astype(np.float32)
+        self.centre64 = [dr.opaque(self.Float64, float(v)) for v in c64]
+        self.centre32 = [(dr.opaque(Float, float(np.nextafter(c, np.float32(-np.inf)) if c > v else c)),
+                          dr.opaque(Float, float(np.nextafter(c, np.float32(np.inf)) if c < v else c)))
+                         for c, v in zip(c32, c64)]
         seeds = {"x": DX, "y": DY, "z": DZ}
         self.groups = []
         for gi, (j, g) in enumerate(tf.groups):
@@ -629,7 +638,7 @@ class DeviceTables:
             prow = np.concatenate([prow, np.arange(g.rows)])         # the all-rows slot
             start = np.searchsorted(slot, np.arange(self.n_slots + 1)).astype(np.int64)
             start = np.concatenate([start, [len(prow)]])
-            t = localize(g.template, centre)
+            t = g.template
             P = g.params[prow]
             exact = bool(np.all(P.astype(np.float32).astype(np.float64) == P))
             p32 = P.astype(np.float32)
@@ -644,7 +653,7 @@ class DeviceTables:
                      for q in range(g.width)],
                 width=g.width))
         self.aggregates = tf.aggregates
-        self.outer = localize(tf.outer, centre)
+        self.outer = tf.outer
         gseeds = dict(seeds, **{f"A{j}": var(f"gA{j}") for j in range(len(tf.aggregates))})
         self.outer_g = derivative(self.outer, gseeds)
         self.combines = [(a.combine, derivative(a.combine, {"a": var("ga"), "b": var("gb")}))
@@ -675,6 +684,10 @@ class DeviceTables:
         from .expr import evaluate, evaluate_with_error
         Float64 = self.Float64
         dirs = directions or [{k: env[k] for k in ("dx", "dy", "dz")}]
+        env, err = dict(env), dict(err)
+        for i, v in enumerate("xyz"):        # local -> global coordinates
+            env[v] = env[v] + self.centre64[i]
+            err[v] = err.get(v, 0.0) + m64.u * dr.abs(env[v])
         nd = len(dirs)
         vals, errs, grads = {}, {}, [dict() for _ in dirs]
         for j, agg in enumerate(self.aggregates):
@@ -725,6 +738,9 @@ class DeviceTables:
         from .expr import evaluate_interval
         Float = self.Float
         env = segment_env(e32, d32, lo, hi, m)
+        for i, v in enumerate("xyz"):        # local -> global coordinates
+            c_lo, c_hi = self.centre32[i]
+            env[v] = iv.pad(m, iv.Interval(env[v].lo + c_lo, env[v].hi + c_hi))
         n = dr.width(lo)
         avals, agrads = {}, {}
         for j, agg in enumerate(self.aggregates):
