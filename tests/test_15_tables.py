@@ -129,12 +129,12 @@ def test_union_of_spheres_analytic(incoherent):
     """Oracle: the nearest ray-sphere root outside every other sphere
     (closed form): the first root of every ray, 0 wrong rays."""
     rng = np.random.default_rng(11)
-    c, r = random_spheres(rng, 150)
+    c, r = random_spheres(rng, 80)
     tf = P.union(P.spheres(c, r))
     surf = lgshape.Surface(tf, depth=6)
-    o, d = rays_at(rng, surf, 3000, incoherent)
+    o, d = rays_at(rng, surf, 2500, incoherent)
     counts = check_first_roots(surf, numpy_F(tf), o, d, union_roots(o, d, c, r))
-    assert counts["none"] < counts["rays"] and counts["simple"] > 300
+    assert counts["none"] < counts["rays"] and counts["simple"] > 250
 
 
 def test_written_union_becomes_a_table():
@@ -271,7 +271,7 @@ def test_blend_polynomial_roots():
 
 
 def test_smooth_union_scan():
-    """A smooth union of 60 spheres and 10 capsules. Oracle: a 4096-step
+    """A smooth union of 60 spheres and 10 capsules. Oracle: a 2048-step
     float64 scan and bisection: where the scan finds a first sign change the
     kernel hits there (or earlier, at a float64-verified sign change); where
     it finds none, any hit must be a verified sign change."""
@@ -279,11 +279,11 @@ def test_smooth_union_scan():
     c, r = random_spheres(rng, 60, 0.5)
     tf = P.smooth_union(P.spheres(c, r), P.capsules(c[:10], c[10:20], 0.05), k=0.08)
     surf = lgshape.Surface(tf)
-    o32, d32 = rays_at(rng, surf, 500)
+    o32, d32 = rays_at(rng, surf, 200)
     o, d = o32.astype(np.float64), d32.astype(np.float64)
     F = numpy_F(tf)
     t0, t1 = clip_to_box(o, d, surf.lo, surf.hi)
-    scan = first_sign_change(F, o, d, t0, t1, steps=4096)
+    scan = first_sign_change(F, o, d, t0, t1, steps=2048)
     res = surf.trace(o32, d32)
     t64, hit = np.asarray(res.t64), np.asarray(res.hit)
     tol = 1e-6 * surf.diagonal
@@ -293,7 +293,7 @@ def test_smooth_union_scan():
     at_scan = hit & (np.abs(t64 - scan) <= tol)
     earlier = verified & (t64 < scan)
     ok = np.where(np.isfinite(scan), at_scan | earlier, ~hit | verified)
-    assert np.isfinite(scan).sum() > 100
+    assert np.isfinite(scan).sum() > 40
     assert ok.all(), f"{int((~ok).sum())} rays disagree with the scan"
 
 
