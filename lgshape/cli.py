@@ -1,12 +1,30 @@
 """The ``lgshape`` command line: ``lgshape render`` renders a Mitsuba XML scene
-with lgshape's plugins registered; ``lgshape bench`` runs the benchmark
-(:mod:`lgshape.bench`).
+with lgshape's plugins registered, one image or a frame sequence;
+``lgshape bench`` runs the benchmark (:mod:`lgshape.bench`).
 
     lgshape render SCENE.xml -o OUT.exr [--spp N] [--variant V] [-D name=value ...]
+    lgshape render SCENE.xml -o out/frame.exr --frames N -D name=a:b [-D name=value ...]
+                   [--video [--fps F]] [--workers N | --cluster tcp://host:8786]
 
-The image is rendered in passes of a few samples per pixel, with a progress
-bar on stderr, and averaged. ``-o x.exr`` writes the EXR (all channels, AOVs
-under their names) and ``x.png`` beside it; ``-o x.png`` writes the PNG only.
+The image is rendered in passes of a few samples per pixel (pass i with
+seed i; their sizes depend only on the sample count and the film size, not
+on timings, so the same command draws the same samples), with a progress bar
+on stderr, and averaged. ``-o x.exr``
+writes the EXR (all channels, AOVs under their names) and ``x.png`` beside
+it; ``-o x.png`` writes the PNG only. Each file is written to a temporary
+file in the same folder and then renamed, so a crash leaves no half-written
+image under the output's name.
+
+``--frames N`` renders a frame sequence (:mod:`lgshape.frames`): each
+``-D name=a:b`` (a and b numbers) goes linearly from a to b over the N
+frames, value_k = a + (b - a) k / (N - 1) (rounded where the parameter sets an
+``<integer>``); a plain ``-D name=value`` stays fixed. Frame k goes to
+``out/frame_000k.exr`` (and ``.png``) and equals a single render with those
+values; frames whose files all exist are skipped (resume). ``--video`` also
+writes ``out/frame.mp4`` from the PNGs (ffmpeg from the imageio-ffmpeg
+package). ``--workers N`` renders on a local Dask cluster of N worker
+processes, ``--cluster ADDRESS`` on a running Dask cluster; without them the
+frames render in this process. One progress bar covers all frames.
 
 Bad input is reported as ``lgshape: error: ...`` on stderr with exit status 2,
 before anything is rendered: the output's extension and folder (it must exist
@@ -14,11 +32,14 @@ and be writable; a file is created and removed there to find out), ``-D``
 names that the scene does not use, ``-D`` values that the scene's
 ``<integer>``/``<float>`` cannot take or that make the film or the sample
 count 0, XML and plugin errors from Mitsuba and lgsurface (without the
-Python traceback that Mitsuba embeds in a plugin's error).
+Python traceback that Mitsuba embeds in a plugin's error), ``-D name=a:b``
+without ``--frames``, a ``--frames`` or ``--workers`` below 1, an ``--fps``
+that is not positive.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import re
@@ -28,7 +49,11 @@ import time
 import xml.etree.ElementTree as ET
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
-PASS_SECONDS = 1.0          # aim of one rendering pass: the progress bar's step
+#: Samples (pixels x samples per pixel) in one rendering pass, about a second
+#: on 2 cores: the progress bar's step, and a bound on the wavefront's memory.
+#: The passes are a function of the sample count and the film size only (not
+#: of timings), so that the same command renders the same image.
+PASS_SAMPLES = 1 << 20
 
 
 def main(argv=None) -> int:
@@ -70,7 +95,22 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--variant", default=DEFAULT_VARIANT,
                    help=f"Mitsuba variant (default: {DEFAULT_VARIANT})")
     r.add_argument("-D", dest="defines", action="append", default=[], metavar="name=value",
-                   help="set a <default> parameter of the scene, as in the mitsuba program")
+                   help="set a <default> parameter of the scene, as in the mitsuba program; "
+                        "with --frames, name=a:b goes linearly from a to b")
+    f = r.add_argument_group("frame sequences (lgshape.frames)")
+    f.add_argument("--frames", type=int, metavar="N",
+                   help="render N frames, OUT_0000.exr, OUT_0001.exr, ...: each -D name=a:b "
+                        "goes linearly from a to b; frames already written are skipped")
+    f.add_argument("--video", action="store_true",
+                   help="also write OUT.mp4 from the frames' PNGs")
+    f.add_argument("--fps", type=float, default=24.0,
+                   help="frame rate of the --video (default: 24)")
+    where = f.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N",
+                       help="render the frames on a local Dask cluster of N worker processes")
+    where.add_argument("--cluster", metavar="ADDRESS",
+                       help="render the frames on the running Dask cluster at ADDRESS "
+                            "(tcp://host:8786)")
     sub.add_parser("bench", help="run the benchmark (lgshape bench --help)", add_help=False)
     return p
 
@@ -90,69 +130,164 @@ def render(args) -> int:
         defines[name] = value
     if args.spp is not None and args.spp < 1:
         raise CommandError("--spp must be at least 1")
+    sequence = (args.frames is not None or args.video or args.workers is not None
+                or args.cluster is not None or any(_range(v) for v in defines.values()))
+    if sequence:
+        from . import frames
+        return frames.cli_render(args, out, defines)
     _check_output(out, ext)
     _check_defines(args.scene, defines)
 
+    result = render_image(args.scene, defines, spp=args.spp, variant=args.variant)
+    import mitsuba as mi
+    written = write_image(mi, result["image"], result["names"], out)
+    print(f"lgshape: rendered {args.scene} ({result['size']}, {result['spp']} spp) in "
+          f"{result['seconds']:.1f} s; wrote {', '.join(written)}", file=sys.stderr)
+    return 0
+
+
+def _range(value):
+    """(a, b) for a -D value "a:b" of two finite numbers, else None."""
+    a, sep, b = value.partition(":")
+    if not sep:
+        return None
+    try:
+        a, b = float(a), float(b)
+    except ValueError:
+        return None
+    return (a, b) if math.isfinite(a) and math.isfinite(b) else None
+
+
+def use_variant(variant):
+    """Set the Mitsuba variant and register lgshape's plugins for it; returns
+    the mitsuba module. The one set-up of a rendering process: the command
+    line and the Dask workers of :mod:`lgshape.frames` go through it."""
     import mitsuba as mi
     import lgshape
-    if args.variant not in mi.variants():
-        raise CommandError(f"unknown variant '{args.variant}'; this Mitsuba has "
+    if variant not in mi.variants():
+        raise CommandError(f"unknown variant '{variant}'; this Mitsuba has "
                            f"{', '.join(mi.variants())}")
     try:
-        mi.set_variant(args.variant)
+        mi.set_variant(variant)
     except Exception as err:  # e.g. a cuda_ variant without a usable GPU
-        raise CommandError(f"cannot use the variant '{args.variant}': {err}") from None
+        raise CommandError(f"cannot use the variant '{variant}': {err}") from None
     try:
         lgshape.register_plugins()
     except RuntimeError as err:
         raise CommandError(str(err)) from None
+    return mi
+
+
+def render_image(scene_path, defines, spp=None, variant=DEFAULT_VARIANT, text=None,
+                 progress=None, warn=None):
+    """Load the scene (``mi.load_file``; with ``text``, that XML instead,
+    relative file names resolved in the scene's folder) with the ``-D``
+    values ``defines`` (name -> string) and render it in passes (see
+    :data:`PASS_SAMPLES`). ``progress(done, spp)`` is called after each
+    pass (default: a progress bar on stderr); ``warn(message)`` gets the
+    warnings (default: printed on stderr). Returns a dict: ``image`` (float32
+    array, height x width x channels), ``names`` (the channel names),
+    ``spp``, ``size`` ("WxH") and ``seconds``. Raises :class:`CommandError`."""
+    if warn is None:
+        def warn(message):
+            print(f"lgshape: warning: {message}", file=sys.stderr)
+    mi = use_variant(variant)
     try:
-        scene = mi.load_file(args.scene, **defines)
+        if text is None:
+            scene = mi.load_file(scene_path, **defines)
+        else:
+            scene = _load_text(mi, text, os.path.dirname(os.path.abspath(scene_path)), defines)
     except Exception as err:  # Mitsuba reports parse and plugin errors as RuntimeError
         given = "".join(f" -D {k}={v}" for k, v in defines.items())
-        raise CommandError(f"cannot load {args.scene}:\n{_clean_error(str(err))}"
+        raise CommandError(f"cannot load {scene_path}:\n{_clean_error(str(err))}"
                            + (f"\n(loaded with{given})" if given else "")) from None
     if not isinstance(scene, mi.Scene):
-        raise CommandError(f"{args.scene} is not a scene: its root element is a "
+        raise CommandError(f"{scene_path} is not a scene: its root element is a "
                            f"{type(scene).__name__}, not <scene>")
 
     from lgshape.plugins.common import lg_shapes
     integrator = scene.integrator()
     if lg_shapes(scene) and not type(integrator).__module__.startswith("lgshape.plugins"):
-        print(f"lgshape: warning: the integrator {type(integrator).__name__} does not see "
-              "lgsurface shapes; use lg_path, lg_direct or lg_aov", file=sys.stderr)
+        warn(f"the integrator {type(integrator).__name__} does not see "
+             "lgsurface shapes; use lg_path, lg_direct or lg_aov")
 
     if not scene.sensors():
-        raise CommandError(f"{args.scene} has no <sensor>: nothing to render")
+        raise CommandError(f"{scene_path} has no <sensor>: nothing to render")
     sensor = scene.sensors()[0]
     width, height = (int(v) for v in sensor.film().crop_size())
     if width < 1 or height < 1:
-        raise CommandError(f"the film of {args.scene} is {width}x{height} pixels; its width "
+        raise CommandError(f"the film of {scene_path} is {width}x{height} pixels; its width "
                            "and height must be at least 1")
-    spp = args.spp or sensor.sampler().sample_count()
+    spp = spp or sensor.sampler().sample_count()
     if spp < 1:
-        raise CommandError(f"the sampler of {args.scene} has sample_count {spp}; give a "
+        raise CommandError(f"the sampler of {scene_path} has sample_count {spp}; give a "
                            "positive sample_count or --spp N")
-    image, names, seconds = _render_passes(mi, scene, sensor, spp)
+    image, names, seconds = _render_passes(mi, scene, sensor, spp, progress)
+    return {"image": image, "names": names, "spp": spp, "seconds": seconds,
+            "size": f"{image.shape[1]}x{image.shape[0]}"}
+
+
+def _load_text(mi, text, folder, defines):
+    """mi.load_string with `folder` first on the file resolver, as
+    mi.load_file does with the scene file's folder."""
+    old = mi.file_resolver()
+    resolver = mi.FileResolver(old)
+    resolver.prepend(folder)
+    mi.set_file_resolver(resolver)
+    try:
+        return mi.load_string(text, **defines)
+    finally:
+        mi.set_file_resolver(old)
+
+
+def write_image(mi, image, names, out):
+    """Write the rendered image to `out` (.exr: the EXR and the PNG beside
+    it; .png: the PNG), each file atomically; returns the paths written."""
     # MultiChannel: with the inferred format, 4 channels (R, G, B and one AOV)
     # would be written as RGBA, the AOV's name lost.
     bitmap = mi.Bitmap(image, pixel_format=mi.Bitmap.PixelFormat.MultiChannel,
                        channel_names=names)
-
     written = []
     try:
-        if ext == ".exr":
-            bitmap.write(out)
+        if os.path.splitext(out)[1].lower() == ".exr":
+            _write_atomic(bitmap, out)
             written.append(out)
             out = os.path.splitext(out)[0] + ".png"
-        _preview(mi, bitmap).write(out)
+        _write_atomic(_preview(mi, bitmap), out)
     except (OSError, RuntimeError) as err:
         raise CommandError(f"cannot write {out}: {err}") from None
     written.append(out)
-    size = f"{image.shape[1]}x{image.shape[0]}"
-    print(f"lgshape: rendered {args.scene} ({size}, {spp} spp) in {seconds:.1f} s; "
-          f"wrote {', '.join(written)}", file=sys.stderr)
-    return 0
+    return written
+
+
+def _write_atomic(bitmap, path):
+    """Write the bitmap to a temporary file in path's folder (named
+    ``.NAME.XXXXXXXX.tmp.EXT``), then rename it to path: path is never
+    half-written, and the temporary file is removed on any error."""
+    folder = os.path.dirname(os.path.abspath(path))
+    ext = os.path.splitext(path)[1]
+    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=f".tmp{ext}",
+                               dir=folder)
+    os.close(fd)
+    try:
+        os.chmod(tmp, 0o666 & ~_umask())        # mkstemp's file is 0600
+        _write_bitmap(bitmap, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.remove(tmp)
+        raise
+
+
+def _write_bitmap(bitmap, path):
+    """The one place where an image file is written."""
+    bitmap.write(path)
+
+
+def _umask():
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def _check_output(out, ext):
@@ -185,18 +320,16 @@ _AT_LEAST_ONE = {("film", "width"), ("film", "height"), ("film", "crop_width"),
 _INTEGER = re.compile(r"\s*[+-]?\d+\s*")
 
 
-def _check_defines(scene_path, defines):
-    """Check -D against the scene's XML before Mitsuba loads it: every name
-    must be a <default> or a $name of the scene, and a value that fills a
-    whole <integer> or <float> must be one (at least 1 for the film size
-    and the sample count). Where the XML cannot be read, Mitsuba's loader
-    reports the problem."""
-    if not defines:
-        return
+def scan_scene(scene_path):
+    """What the scene's XML says about its parameters: a dict with ``known``
+    (the <default> names), ``uses`` (name -> [(element, whole value,
+    plugin element)] for each $name), ``includes`` (whether it has an
+    <include>) and ``integers`` (the names that fill a whole <integer>).
+    None where the XML cannot be read (Mitsuba's loader then reports it)."""
     try:
         root = ET.parse(scene_path).getroot()
     except (ET.ParseError, OSError, ValueError):
-        return
+        return None
     known, uses, includes = set(), {}, False
 
     def walk(elem, plugin):
@@ -213,13 +346,32 @@ def _check_defines(scene_path, defines):
             walk(child, child_plugin)
 
     walk(root, root)
+    integers = {name for name, refs in uses.items()
+                if any(whole and elem.tag == "integer" for elem, whole, _ in refs)}
+    return {"known": known, "uses": uses, "includes": includes, "integers": integers}
+
+
+def _check_defines(scene_path, defines, scan=None, shown=None):
+    """Check -D against the scene's XML before Mitsuba loads it: every name
+    must be a <default> or a $name of the scene, and a value that fills a
+    whole <integer> or <float> must be one (at least 1 for the film size
+    and the sample count). Where the XML cannot be read, Mitsuba's loader
+    reports the problem. `scan`: scan_scene(scene_path), if at hand;
+    `shown`: name -> the value to name in messages (default: the value)."""
+    if not defines:
+        return
+    scan = scan_scene(scene_path) if scan is None else scan
+    if scan is None:
+        return
+    known, uses, includes = scan["known"], scan["uses"], scan["includes"]
     names = sorted(known | set(uses))
     for name, value in defines.items():
+        given = f"-D {name}={(shown or {}).get(name, value)}"
         if name not in known and name not in uses:
             if includes:
                 continue  # an included file may use it: Mitsuba checks
             have = ", ".join(names) if names else "none"
-            raise CommandError(f"-D {name}={value}: the scene has no parameter '{name}' "
+            raise CommandError(f"{given}: the scene has no parameter '{name}' "
                                f"(its parameters: {have})")
         for elem, whole, plugin in uses.get(name, []):
             if not whole or elem.tag not in ("integer", "float"):
@@ -229,16 +381,16 @@ def _check_defines(scene_path, defines):
                      + (f" type=\"{plugin.attrib['type']}\"" if "type" in plugin.attrib else "")
                      + ">")
             if elem.tag == "integer" and not _INTEGER.fullmatch(value):
-                raise CommandError(f"-D {name}={value}: '{name}' must be an integer "
+                raise CommandError(f"{given}: '{name}' must be an integer "
                                    f"(it sets {where})")
             if elem.tag == "float":
                 try:
                     float(value)
                 except ValueError:
-                    raise CommandError(f"-D {name}={value}: '{name}' must be a number "
+                    raise CommandError(f"{given}: '{name}' must be a number "
                                        f"(it sets {where})") from None
             if (plugin.tag, prop) in _AT_LEAST_ONE and float(value) < 1:
-                raise CommandError(f"-D {name}={value}: '{name}' must be at least 1 "
+                raise CommandError(f"{given}: '{name}' must be at least 1 "
                                    f"(it sets {where})")
 
 
@@ -252,25 +404,39 @@ def _clean_error(message):
     return message.strip()
 
 
-def _render_passes(mi, scene, sensor, spp):
-    """Render ``spp`` samples in passes of about PASS_SECONDS each; returns
-    (image as float32 numpy array, channel names, seconds)."""
+def pass_sizes(spp, pixels):
+    """The samples per pixel of each rendering pass: equal passes (within
+    1) of at most PASS_SAMPLES samples, a function of `spp` and the number of
+    pixels only. Pass i is rendered with seed i."""
+    per_pass = max(1, min(spp, PASS_SAMPLES // max(1, pixels)))
+    count = -(-spp // per_pass)
+    base, extra = divmod(spp, count)
+    return [base + 1] * extra + [base] * (count - extra)
+
+
+def _render_passes(mi, scene, sensor, spp, progress=None):
+    """Render ``spp`` samples in the passes of :func:`pass_sizes`, pass i
+    with seed i; returns (image as float32 numpy array, channel names,
+    seconds). ``progress(done, spp)`` after each pass (default: a progress
+    bar on stderr)."""
     import numpy as np
-    bar = _ProgressBar(spp)
-    total, done, i, chunk = None, 0, 0, max(1, min(spp, 4))
+    bar = None
+    if progress is None:
+        bar = _ProgressBar(spp)
+        t_bar = time.perf_counter()
+
+        def progress(done, total):
+            bar.update(done, time.perf_counter() - t_bar)
+    width, height = (int(v) for v in sensor.film().crop_size())
+    total, done = None, 0
     t0 = time.perf_counter()
-    while done < spp:
-        left = spp - done
-        n = -(-left // -(-left // chunk))         # equal passes, no tiny last one
-        t = time.perf_counter()
+    for i, n in enumerate(pass_sizes(spp, width * height)):
         img = np.array(mi.render(scene, sensor=sensor, spp=n, seed=i), dtype=np.float64)
-        dt = time.perf_counter() - t
         total = img * n if total is None else total + img * n
-        done, i = done + n, i + 1
-        bar.update(done, time.perf_counter() - t0)
-        # Next pass: about PASS_SECONDS long, growing at most 4x.
-        chunk = max(1, min(4 * n, int(n * PASS_SECONDS / max(dt, 1e-3))))
-    bar.close()
+        done += n
+        progress(done, spp)
+    if bar is not None:
+        bar.close()
     names = [field.name for field in sensor.film().bitmap().struct_()]
     return (total / spp).astype(np.float32), names, time.perf_counter() - t0
 
@@ -299,18 +465,20 @@ class _ProgressBar:
     """A text progress bar on stderr (redrawn in place on a terminal)."""
     WIDTH = 30
 
-    def __init__(self, total):
-        self.total, self.tty = total, sys.stderr.isatty()
+    def __init__(self, total, unit="spp", tty=None):
+        self.total, self.unit = total, unit
+        self.tty = sys.stderr.isatty() if tty is None else tty
 
     def update(self, done, elapsed):
+        """`done` of the total (a float: part of a frame counts)."""
         if not self.tty:
             return
-        frac = done / self.total
+        frac = done / self.total if self.total else 1.0
         fill = int(round(frac * self.WIDTH))
         eta = elapsed / frac - elapsed if frac > 0 else math.inf
         bar = "#" * fill + "." * (self.WIDTH - fill)
-        sys.stderr.write(f"\rRendering [{bar}] {100 * frac:3.0f}% {done}/{self.total} spp, "
-                         f"{elapsed:.1f} s, ETA {eta:.1f} s ")
+        sys.stderr.write(f"\rRendering [{bar}] {100 * frac:3.0f}% {int(done)}/{self.total} "
+                         f"{self.unit}, {elapsed:.1f} s, ETA {eta:.1f} s ")
         sys.stderr.flush()
 
     def close(self):
