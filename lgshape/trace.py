@@ -177,12 +177,14 @@ class Surface:
     each pruning cell keeps the rows that can matter there, the search
     evaluates only those, and the compiled kernels depend on the templates,
     not on the number of rows or their values. Tables use the ``"interval"``
-    search and computed bounds (no hand-given L or G).
+    search and computed bounds (no hand-given L or G). ``tables=False``
+    evaluates the whole expression everywhere instead (the unpruned form, for
+    comparison: one fused kernel that grows with the expression).
     """
 
     def __init__(self, expr, bbox=None, *, L: float | None = None, G: float | None = None,
                  depth: int | None = None, search: str | None = None,
-                 max_iterations: int = 4096):
+                 max_iterations: int = 4096, tables: bool = True):
         f, default_box = _as_expr(expr)
         bbox = bbox if bbox is not None else default_box
         if bbox is None:
@@ -198,7 +200,9 @@ class Surface:
         if search not in SEARCH_MODES:
             raise ValueError(f"unknown search mode {search!r} (one of {', '.join(SEARCH_MODES)})")
         self.search = search
-        self.tables = f if isinstance(f, TableForm) else find_tables(f)
+        if not tables and isinstance(f, TableForm):
+            f = f.expr()
+        self.tables = f if isinstance(f, TableForm) else (find_tables(f) if tables else None)
         self._expr = None if isinstance(f, TableForm) else f
         self.lo, self.hi = lo, hi
         if self.tables is not None and (L is not None or G is not None or search != "interval"):

@@ -247,8 +247,10 @@ def test08_flip_normals():
     ({"expr": "x - 1", "bbox_min": [-1] * 3, "bbox_max": [1] * 3, "R": 1.0},
      r"unknown parameter 'R'"),
     ({"surface": "blobs", "centers": "0 0 0"}, r"'centers' of surface 'blobs' cannot be set"),
-    ({"surface": "torus", "expr": "x"}, r"either 'expr' or 'surface', not both"),
-    ({}, r"needs 'expr' \(an expression\) or 'surface'"),
+    ({"surface": "torus", "expr": "x"}, r"give one of 'expr', 'expr_file', 'surface' or "
+                                        r"'primitives', not 'expr' and 'surface'"),
+    ({}, r"needs 'expr' \(an expression\), 'expr_file', 'primitives' \(a primitives file\) "
+         r"or 'surface'"),
     ({"surface": "sphere", "depth": 2.5}, r"'depth' must be a non-negative integer"),
     ({"surface": "sphere", "depth": 11}, r"lgsurface: depth must be between 2 and 10"),
     ({"surface": "sphere", "L": -1.0}, r"'L' must be a positive number"),

@@ -12,6 +12,7 @@ ray-sphere oracle on Mitsuba's own camera rays.
 """
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 import time
@@ -128,6 +129,9 @@ def scene_copy(scene, path, lgsurfaces=True, depth_aov=False):
         for e in shapes:
             root.remove(e)
     tree.write(path)
+    data = scene.parent / "data"            # files the scene refers to (primitives)
+    if data.is_dir() and not (path.parent / "data").exists():
+        shutil.copytree(data, path.parent / "data")
     return path
 
 

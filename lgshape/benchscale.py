@@ -1,0 +1,247 @@
+"""The benchmark's scale section: cost against the number of primitives.
+
+Two models, N = 10 .. 10000 primitives in [-1, 1]^3 (fixed seeds):
+
+- ``union``: min of N spheres (|p - c_i| - r_i, r_i ~ 0.6 N^(-1/3)), oracle
+  analytic: the nearest ray-sphere entry (the camera is outside every
+  sphere);
+- ``blend``: threshold 0.5 minus the sum of N compactly supported soft blobs
+  (Wyvill kernels (1 - d^2 / R_i^2)^3, R_i ~ 1.3 N^(-1/3)); oracle: the
+  unpruned f along the reported hit (its sign change), in float64.
+
+Each (model, N, form) runs in a fresh process (so its peak RSS is its own):
+the build (table form and pruning grid), the first frame with a cold Dr.Jit
+kernel cache (a new, empty cache folder: LLVM compile included), then the
+steady trace (median of timed samples after a warm-up) of the same camera
+rays. ``form``: ``tables`` (per-cell rows, lgshape's default) or
+``unpruned`` (the whole expression in one fused kernel, ``tables=False``;
+only up to :data:`UNPRUNED_MAX` primitives, beyond which it runs for minutes
+and gigabytes).
+"""
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+NS = (10, 100, 1000, 10000)
+UNPRUNED_MAX = 100
+QUICK_NS = (10, 100)
+TIMEOUT = 900
+
+#: The issue's targets at N = 1000 (and 10000), against N = 10.
+TARGETS = {"build_s": 2.0, "first_s": 5.0, "steady_ratio": 3.0, "rss_gb": 1.5,
+           "steady_ratio_10000": 10.0}
+
+
+def model(kind: str, n: int):
+    import lgshape.primitives as P
+    rng = np.random.default_rng(1000 + n)
+    c = rng.uniform(-1, 1, (n, 3))
+    if kind == "union":
+        r = 0.6 * n ** (-1 / 3) * rng.uniform(0.5, 1.0, n)
+        return P.union(P.spheres(c, r)), (c, r)
+    R = 1.3 * n ** (-1 / 3) * rng.uniform(0.7, 1.0, n)
+    return P.blend(P.spheres(c, R), threshold=0.5), (c, R)
+
+
+def union_first_root(o, d, c, r, chunk=256):
+    """Nearest ray-sphere entry t >= 0 (float64, inf where none)."""
+    o, d = o.astype(np.float64), d.astype(np.float64)
+    A = (d * d).sum(1)[:, None]                 # float32 directions: not exactly unit
+    best = np.full(len(o), np.inf)
+    for s in range(0, len(c), chunk):
+        oc = o[:, None, :] - c[None, s:s + chunk]
+        b = (oc * d[:, None, :]).sum(-1)
+        # from the point of closest approach (no cancellation)
+        tc = -b / A
+        P = oc + tc[..., None] * d[:, None, :]
+        h2 = (r[None, s:s + chunk] ** 2 - (P * P).sum(-1)) / A
+        with np.errstate(invalid="ignore"):
+            t = tc - np.sqrt(h2)
+        t = np.where((h2 >= 0) & (t >= 0), t, np.inf)
+        best = np.minimum(best, t.min(1))
+    return best
+
+
+def worker(kind: str, n: int, form: str, res: int, repeats: int) -> dict:
+    """One measurement (run in its own process)."""
+    import drjit as dr
+
+    import lgshape
+    from lgshape import tables as T
+    from lgshape.camera import primary_rays
+    from drjit.llvm.ad import Array3f
+    t0 = time.perf_counter()
+    tf, (c, r) = model(kind, n)
+    surf = lgshape.Surface(tf, tables=(form == "tables"))
+    build = time.perf_counter() - t0
+    o, d = primary_rays(surf.bbox, res)
+    O, D = Array3f(o.T.copy()), Array3f(d.T.copy())
+    dr.eval(O, D)
+
+    def trace():
+        out = surf.trace(O, D)
+        dr.eval(out.t, out.t64, out.hit, out.capped, out.iterations)
+        dr.sync_thread()
+        return out
+    t1 = time.perf_counter()
+    out = trace()
+    first = time.perf_counter() - t1
+    trace()
+    samples = []
+    for _ in range(repeats):
+        t1 = time.perf_counter()
+        out = trace()
+        samples.append(time.perf_counter() - t1)
+    t64, hit = np.asarray(out.t64), np.asarray(out.hit)
+    rec = {"model": kind, "n": n, "form": form, "build_s": build,
+           "first_s": first, "first_frame_s": build + first,
+           "steady_s": float(np.median(samples)), "rays": len(o),
+           "hits": int(hit.sum()), "capped": int(np.asarray(out.capped).sum()),
+           "iterations_mean": float(np.asarray(out.iterations).mean()),
+           "rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+           "cells": int(len(surf.grid.cells))}
+    if surf.cell_rows is not None:
+        pairs = sum(len(p) for p in surf.cell_rows.pair_row)
+        rec["rows_per_cell"] = pairs / max(len(surf.grid.cells), 1)
+    tol = 1e-6 * surf.diagonal
+    if kind == "union":
+        ref = union_first_root(o, d, c, r)
+        wrong = ~((np.isinf(ref) & ~hit) | (hit & (np.abs(t64 - ref) <= tol)))
+        rec["wrong"] = int(wrong.sum())
+        rec["oracle"] = "analytic nearest ray-sphere entry, every ray"
+    else:
+        # every hit is a sign change of the whole f within 2 tolerances
+        k = np.flatnonzero(hit)
+        p_m = o[k] + (t64[k] - 2 * tol)[:, None] * d[k]
+        p_p = o[k] + (t64[k] + 2 * tol)[:, None] * d[k]
+        fm, fp = T.evaluate_points(tf, p_m), T.evaluate_points(tf, p_p)
+        rec["wrong"] = int(np.sum(np.sign(fm) * np.sign(fp) > 0))
+        rec["oracle"] = "sign change of the whole f (float64) at every hit"
+    return rec
+
+
+def run(log, quick=False, res=512, repeats=5) -> list:
+    """Every (model, N, form) in its own process; returns the records."""
+    ns = QUICK_NS if quick else NS
+    records = []
+    for kind in ("union", "blend"):
+        for n in ns:
+            for form in ("tables", "unpruned"):
+                if form == "unpruned" and n > UNPRUNED_MAX:
+                    continue
+                with tempfile.TemporaryDirectory(prefix="lgshape-scale-") as home:
+                    env = dict(os.environ, HOME=home)       # a cold Dr.Jit kernel cache
+                    cmd = [sys.executable, "-m", "lgshape.benchscale", kind, str(n), form,
+                           str(res), str(repeats)]
+                    try:
+                        p = subprocess.run(cmd, env=env, capture_output=True, text=True,
+                                           timeout=TIMEOUT)
+                    except subprocess.TimeoutExpired:
+                        records.append({"model": kind, "n": n, "form": form,
+                                        "error": f"over {TIMEOUT} s"})
+                        log(f"scale {kind} N={n} {form}: over {TIMEOUT} s")
+                        continue
+                if p.returncode != 0:
+                    err = (p.stderr.strip().splitlines() or ["?"])[-1]
+                    records.append({"model": kind, "n": n, "form": form, "error": err})
+                    log(f"scale {kind} N={n} {form}: failed: {err}")
+                    continue
+                rec = json.loads(p.stdout.strip().splitlines()[-1])
+                records.append(rec)
+                log(f"scale {kind} N={n} {form}: build {rec['build_s']:.2f} s, first frame "
+                    f"{rec['first_frame_s']:.2f} s, steady {rec['steady_s'] * 1e3:.1f} ms, "
+                    f"RSS {rec['rss_gb']:.2f} GB, wrong {rec['wrong']}")
+    return records
+
+
+def verdicts(records) -> list:
+    """The targets, checked per model: (model, what, value, target, met)."""
+    out = []
+    by = {(r["model"], r["n"], r["form"]): r for r in records if "error" not in r}
+    for kind in ("union", "blend"):
+        base = by.get((kind, 10, "tables"))
+        k = by.get((kind, 1000, "tables"))
+        if base and k:
+            out += [(kind, "build at N=1000 (s)", k["build_s"], TARGETS["build_s"],
+                     k["build_s"] <= TARGETS["build_s"]),
+                    (kind, "first frame at N=1000, cold cache (s)", k["first_frame_s"],
+                     TARGETS["first_s"], k["first_frame_s"] <= TARGETS["first_s"]),
+                    (kind, "steady trace N=1000 / N=10", k["steady_s"] / base["steady_s"],
+                     TARGETS["steady_ratio"], k["steady_s"] / base["steady_s"] <= TARGETS["steady_ratio"]),
+                    (kind, "peak RSS at N=1000 (GB)", k["rss_gb"], TARGETS["rss_gb"],
+                     k["rss_gb"] <= TARGETS["rss_gb"])]
+        k = by.get((kind, 10000, "tables"))
+        if base and k:
+            ratio = k["steady_s"] / base["steady_s"]
+            out.append((kind, "steady trace N=10000 / N=10", ratio, TARGETS["steady_ratio_10000"],
+                        ratio <= TARGETS["steady_ratio_10000"]))
+    return out
+
+
+def chart(records, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
+    what = [("steady_s", "steady trace (s)"), ("first_frame_s", "first frame, cold cache (s)"),
+            ("rss_gb", "peak RSS (GB)")]
+    for ax, (key, label) in zip(axes, what):
+        for kind, colour in (("union", "C0"), ("blend", "C1")):
+            for form, style in (("tables", "-o"), ("unpruned", "--x")):
+                rs = sorted((r for r in records if r.get("model") == kind and r.get("form") == form
+                             and "error" not in r), key=lambda r: r["n"])
+                if rs:
+                    ax.plot([r["n"] for r in rs], [r[key] for r in rs], style, color=colour,
+                            label=f"{kind}, {form}")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("primitives N")
+        ax.set_title(label)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def report(records, res) -> list:
+    L = ["## Scale: cost against the number of primitives\n",
+         f"Union of N random spheres and blend of N soft blobs, {res} x {res} camera rays; each "
+         "row in a fresh process (build, then the first frame with an empty Dr.Jit kernel "
+         "cache: compile included; steady = median after warm-up). `tables`: per-cell rows "
+         "(lgshape's default); `unpruned`: the whole expression in one fused kernel. Oracles: "
+         "the union's analytic nearest ray-sphere entry on every ray; for the blend, a sign "
+         "change of the whole f (float64) at every hit.\n",
+         "![scale](charts/scale.png)\n",
+         "| model | N | form | build s | first frame s | steady ms | peak RSS GB | rows/cell | "
+         "iterations/ray | hits | wrong | capped |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in records:
+        if "error" in r:
+            L.append(f"| {r['model']} | {r['n']} | {r['form']} | {r['error']} |||||||||")
+            continue
+        L.append(f"| {r['model']} | {r['n']} | {r['form']} | {r['build_s']:.2f} | "
+                 f"{r['first_frame_s']:.2f} | {r['steady_s'] * 1e3:.1f} | {r['rss_gb']:.2f} | "
+                 f"{r.get('rows_per_cell', float('nan')):.1f} | {r['iterations_mean']:.1f} | "
+                 f"{r['hits']} | {r['wrong']} | {r['capped']} |")
+    v = verdicts(records)
+    if v:
+        L += ["", "Targets (issue 9):\n", "| model | measure | value | target | met |",
+              "|---|---|---|---|---|"]
+        L += [f"| {k} | {w} | {val:.2f} | <= {t:g} | {'yes' if ok else '**no**'} |"
+              for k, w, val, t, ok in v]
+    return L + [""]
+
+
+if __name__ == "__main__":
+    kind, n, form, res, repeats = sys.argv[1], int(sys.argv[2]), sys.argv[3], int(sys.argv[4]), \
+        int(sys.argv[5])
+    print(json.dumps(worker(kind, n, form, res, repeats)))
