@@ -343,18 +343,33 @@ def find_tables(f: Expr, min_rows: int = MIN_ROWS) -> TableForm | None:
 # Per-cell rows: interval rules (numpy float64, host)
 # ---------------------------------------------------------------------------
 
-def row_intervals(group: Group, rows, lo, hi):
+#: Pairs per block of the host interval evaluation (blocks stay in cache).
+BLOCK = 1 << 15
+
+
+def row_intervals(group: Group, rows, lo, hi, zeros: bool = False):
     """Interval of the template over boxes [lo, hi] (P, 3) for rows (P,),
-    and per node exactly-zero flags at the root: (lo, hi, zero)."""
+    and (with ``zeros``) where it is exactly zero on the box: (lo, hi, zero)."""
+    if len(rows) > BLOCK:
+        parts = [_row_intervals(group, rows[s:s + BLOCK], lo[s:s + BLOCK], hi[s:s + BLOCK], zeros)
+                 for s in range(0, len(rows), BLOCK)]
+        return tuple(None if p[0] is None else np.concatenate(p) for p in zip(*parts))
+    return _row_intervals(group, rows, lo, hi, zeros)
+
+
+def _row_intervals(group, rows, lo, hi, zeros):
     env = {v: iv.Interval(lo[:, i], hi[:, i]) for i, v in enumerate("xyz")}
     P = group.params[rows]
     for q in range(group.width):
         env[f"p{q}"] = P[:, q]
-    nodes = topological([group.template])
     with np.errstate(all="ignore"):
-        vals = evaluate_interval(nodes, env, NUMPY)
-    zero = _exact_zero(nodes, vals, env, len(rows))
-    r = vals[-1]
+        if zeros:       # every node's interval, for the exact-zero proof
+            nodes = topological([group.template])
+            vals = evaluate_interval(nodes, env, NUMPY)
+            zero = _exact_zero(nodes, vals, env, len(rows))
+            r = vals[-1]
+        else:
+            r, zero = evaluate_interval(group.template, env, NUMPY), None
     rlo = np.broadcast_to(r.lo, len(rows)).astype(np.float64)
     rhi = np.broadcast_to(r.hi, len(rows)).astype(np.float64)
     # NaN bounds say nothing: the row may take any value.
@@ -379,7 +394,8 @@ def _exact_zero(nodes, vals, env, P):
                         else np.zeros(P, bool))
         else:
             za = [z[id(a)] for a in n.args]
-            ia = [iv.promote(NUMPY, ival[id(a)]) for a in n.args]
+            ia = [ival[id(a)] if isinstance(ival[id(a)], iv.Interval)
+                  else iv.Interval(ival[id(a)], ival[id(a)]) for a in n.args]
             finite = [np.isfinite(i.lo) & np.isfinite(i.hi) for i in ia]
             op = n.op
             if op == "max":
@@ -523,10 +539,11 @@ def build(tf: TableForm, lo, hi, depth: int) -> CellRows:
         tested += n
         # Interval of every (cell, row) pair, then the aggregate rules.
         ivals = []
-        for gi, (_, g) in enumerate(groups):
+        for gi, (j, g) in enumerate(groups):
             c, r = pair_cell[gi], pair_row[gi]
             pairs_tested += len(c)
-            rlo, rhi, zero = row_intervals(g, r, clo[c], chi[c]) if len(c) else \
+            zeros = tf.aggregates[j].op == "add"
+            rlo, rhi, zero = row_intervals(g, r, clo[c], chi[c], zeros) if len(c) else \
                 (np.zeros(0), np.zeros(0), np.zeros(0, bool))
             ivals.append((c, rlo, rhi, zero))
         env = {v: iv.Interval(clo[:, i], chi[:, i]) for i, v in enumerate("xyz")}

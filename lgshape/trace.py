@@ -141,6 +141,15 @@ def _check_int(name, v, lo, hi):
     return int(v)
 
 
+def _default_depth(tables) -> int:
+    """6; for a table form, finer with more rows (7 from 300 rows, 8 from
+    3000), which keeps about one row per cell where primitives are dense
+    (measured in the benchmark's scale section)."""
+    if tables is not None:
+        return 6 + (tables.rows >= 300) + (tables.rows >= 3000)
+    return 6
+
+
 def _sample_points(lo, hi, n=CHECK_SAMPLES, seed=0):
     """Points of the box for the construction checks: a regular grid
     (corners and centres included) and random points."""
@@ -162,7 +171,8 @@ class Surface:
     search uses it instead of local interval bounds). Hand-given L and G are
     checked against |grad f| and the Hessian's norm at sampled points and
     refused, naming the point, where they are too small. ``depth``: the
-    pruning depth, an integer from 2 to 10 (2**depth cells per axis).
+    pruning depth, an integer from 2 to 10 (2**depth cells per axis; default
+    6, finer for large tables, see :func:`_default_depth`).
     ``search``: how ray intervals are bounded, see :data:`SEARCH_MODES`
     (default ``"interval"``, or ``"global"`` when ``G`` is given).
     ``max_iterations``: the per-ray bound on search steps.
@@ -193,7 +203,8 @@ class Surface:
         for name, v in (("L", L), ("G", G)):
             if v is not None and not (isinstance(v, numbers.Real) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be a positive finite number, got {v}")
-        self.depth = _check_int("depth", 6 if depth is None else depth, 2, 10)
+        if depth is not None:
+            _check_int("depth", depth, 2, 10)
         self.max_iterations = _check_int("max_iterations", max_iterations, 1, 2**30)
         if search is None:
             search = "global" if G is not None else "interval"
@@ -204,6 +215,8 @@ class Surface:
             f = f.expr()
         self.tables = f if isinstance(f, TableForm) else (find_tables(f) if tables else None)
         self._expr = None if isinstance(f, TableForm) else f
+        self.depth = _check_int("depth", _default_depth(self.tables) if depth is None else depth,
+                                2, 10)
         self.lo, self.hi = lo, hi
         if self.tables is not None and (L is not None or G is not None or search != "interval"):
             raise ValueError("a table form (many primitives) uses the 'interval' search with "
