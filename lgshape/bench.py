@@ -797,6 +797,12 @@ def report(results, command, written) -> str:
                      f"{c['description']}. Oracle: {c['oracle']}.")
         L.append("")
 
+    if results.get("scale"):
+        from . import benchscale
+        L += benchscale.report(results["scale"], meta["res"])
+    if results.get("temporal"):
+        from . import benchtemporal
+        L += benchtemporal.report(results["temporal"])
     L.append("## All records\n")
     L.append("Depth errors in box diagonals; `–` where a figure has no meaning (no evaluations "
              "of f, no pixel hit by both).\n")
@@ -861,6 +867,10 @@ def _parser():
                    help="only these library surfaces")
     p.add_argument("--no-stability", dest="stability", action="store_false",
                    help="skip the stability suite")
+    p.add_argument("--no-scale", dest="scale", action="store_false",
+                   help="skip the scale section (cost against the number of primitives)")
+    p.add_argument("--no-temporal", dest="temporal", action="store_false",
+                   help="skip the temporal-stability section (animation)")
     return p
 
 
@@ -890,7 +900,21 @@ def main(argv=None) -> int:
         records += bench_surface(name, cfg, log)
     stab, notes = bench_stability(cfg, log) if args.stability else ([], [])
     results = {"meta": meta, "records": records, "stability": stab, "cases": notes}
-    os.makedirs(args.out, exist_ok=True)
+    os.makedirs(os.path.join(args.out, "charts"), exist_ok=True)
+    if args.scale:
+        from . import benchscale
+        results["scale"] = benchscale.run(log, quick=args.quick, res=cfg.res,
+                                          repeats=cfg.repeats)
+        benchscale.chart(results["scale"], os.path.join(args.out, "charts", "scale.png"))
+    if args.temporal:
+        try:
+            from . import benchtemporal
+        except ImportError:
+            benchtemporal = None
+        if benchtemporal is not None:
+            results["temporal"] = benchtemporal.run(log, quick=args.quick)
+            benchtemporal.chart(results["temporal"],
+                                os.path.join(args.out, "charts", "temporal.png"))
     written = charts(records, args.out)
     results["meta"]["seconds"] = round(time.perf_counter() - t_start, 1)
     with open(os.path.join(args.out, "results.json"), "w") as fh:

@@ -676,17 +676,20 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
         # poles), where it also tells whether F is bounded.
         mv_ok = defined & dr.isfinite(mv_lo) & dr.isfinite(mv_hi)
         need_fi = searching & ~mv_ok
-        if tabled:      # computed with g's bounds, over the same rows
-            Fi_lo = dr.select(need_fi, Fn_lo, -dr.inf)
-            Fi_hi = dr.select(need_fi, Fn_hi, dr.inf)
+        if tabled:      # computed with g's bounds, over the same rows: always there
+            Fi_lo, Fi_hi = Fn_lo, Fn_hi
         else:
             Fi_lo, Fi_hi = (Float64(v) for v in dr.if_stmt(
                 args=(lo, hi), cond=need_fi, true_fn=natural_bounds,
                 false_fn=lambda lo, hi: (Float(-dr.inf), Float(dr.inf)), label="lgshape_natural"))
         evals = evals + dr.select(busy, 1, 0) + dr.select(local_bounds, 1, 0) \
             + dr.select(need_fi, 1, 0)
-        F_lo = dr.select(mv_ok, mv_lo, Fi_lo)
-        F_hi = dr.select(mv_ok, mv_hi, Fi_hi)
+        # Both forms enclose F: where both are there, their intersection
+        # (the natural form is the tighter one on a ray passing a distance
+        # field's surface at a grazing angle, the mean-value form on short
+        # intervals).
+        F_lo = dr.select(mv_ok, dr.maximum(mv_lo, Fi_lo), Fi_lo)
+        F_hi = dr.select(mv_ok, dr.minimum(mv_hi, Fi_hi), Fi_hi)
         F_lo = dr.select(dr.isnan(F_lo), -dr.inf, F_lo)
         F_hi = dr.select(dr.isnan(F_hi), dr.inf, F_hi)
         excluded = (F_lo > 0) | (F_hi < 0)

@@ -309,7 +309,7 @@ def test_kernels_reused_across_row_counts():
     for n, seed in ((30, 1), (300, 2)):
         rng = np.random.default_rng(seed)
         c, r = random_spheres(rng, n)
-        surf = lgshape.Surface(P.union(P.spheres(c, r)))
+        surf = lgshape.Surface(P.union(P.spheres(c, r)), depth=6)   # (a depth is structure)
         o, d = rays_at(rng, surf, 256)
         dr.set_flag(dr.JitFlag.KernelHistory, True)
         dr.kernel_history()                       # clear
