@@ -10,7 +10,8 @@ primitive; the combinations return a :class:`~lgshape.tables.TableForm`
 on their number, and each pruning cell evaluates only the primitives that
 can matter there.
 
-Kinds, as signed distances d (negative inside):
+Parameters are stored as float32 values (as Mitsuba's scene data); f is
+defined by those. Kinds, as signed distances d (negative inside):
 
 - ``spheres(c, r)``: |p - c| - r
 - ``capsules(a, b, r)``: distance to the segment ab, minus r
@@ -260,6 +261,13 @@ def _bbox(parts, margin):
     return tuple(lo - pad), tuple(hi + pad)
 
 
+def _f32(params) -> np.ndarray:
+    """Parameters as float32 values (as Mitsuba's scene data): f is defined
+    by these, and the kernel gathers each once, in float32, for both its
+    float64 point values and its float32 intervals (exactly)."""
+    return np.asarray(params, np.float64).astype(np.float32).astype(np.float64)
+
+
 def _form(outer: Expr, op: str, groups, k: float, parts, margin: float) -> TableForm:
     tf = TableForm(outer, [Aggregate(op, groups, k)])
     tf.bbox = _bbox(parts, margin)
@@ -269,7 +277,7 @@ def _form(outer: Expr, op: str, groups, k: float, parts, margin: float) -> Table
 def union(*parts) -> TableForm:
     """min over the primitives' signed distances."""
     parts = _parts(parts)
-    groups = [make_group(_distance(p.kind), _distance_params(p)) for p in parts]
+    groups = [make_group(_distance(p.kind), _f32(_distance_params(p))) for p in parts]
     return _form(var("A0"), "min", groups, 0.0, parts, 0.0)
 
 
@@ -278,7 +286,7 @@ def smooth_union(*parts, k: float) -> TableForm:
     parts = _parts(parts)
     if not (np.isfinite(k) and k > 0):
         raise ValueError(f"smooth_union: k must be positive and finite, got {k}")
-    groups = [make_group(_distance(p.kind), _distance_params(p)) for p in parts]
+    groups = [make_group(_distance(p.kind), _f32(_distance_params(p))) for p in parts]
     return _form(var("A0"), "smin", groups, float(k), parts, 0.0)
 
 
@@ -293,7 +301,7 @@ def blend(*parts, threshold: float = 0.5) -> TableForm:
         weighted = p.weights is not None
         if weighted:
             prm = np.column_stack([prm, p.weights])
-        groups.append(make_group(_kernel(p.kind, weighted), prm))
+        groups.append(make_group(_kernel(p.kind, weighted), _f32(prm)))
     radius = max(float(_kernel_params(p)[:, _radius_column(p.kind)].max()) for p in parts)
     return _form(float(threshold) - var("A0"), "add", groups, 0.0, parts, radius)
 

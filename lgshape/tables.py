@@ -664,7 +664,9 @@ class DeviceTables:
             self.groups.append(_DeviceGroup(
                 aggregate=j, template=t, g=derivative(t, seeds),
                 start=UInt32(start.astype(np.uint32)),
-                p64=[self.Float64(np.ascontiguousarray(P[:, q])) for q in range(g.width)],
+                # float32 values are gathered once, as float32, for both
+                p64=None if exact else [self.Float64(np.ascontiguousarray(P[:, q]))
+                                        for q in range(g.width)],
                 p32=[(Float(np.ascontiguousarray(lo32[:, q])),
                       None if exact else Float(np.ascontiguousarray(hi32[:, q])))
                      for q in range(g.width)],
@@ -720,7 +722,8 @@ class DeviceTables:
                     gs, first = rest[:-1], rest[-1]
                     penv, perr = dict(env), dict(err)
                     for q in range(grp.width):
-                        penv[f"p{q}"] = dr.gather(Float64, grp.p64[q], i)
+                        penv[f"p{q}"] = dr.gather(Float64, grp.p64[q], i) if grp.p64 else \
+                            Float64(dr.gather(self.Float, grp.p32[q][0], i))
                     tv, te = evaluate_with_error(grp.template, penv, perr, m64, safety=False)
                     tg = [evaluate(grp.g, {**penv, **dd}, m64) for dd in dirs]
                     cv, ce = evaluate_with_error(comb, {"a": v, "b": tv}, {"a": ev, "b": te}, m64,

@@ -349,23 +349,23 @@ def test_primitives_file(tmp_path):
 
 
 def test_builder_distances_match_closed_forms():
-    """Oracle: closed-form distances (sphere, capsule, box, torus) in numpy."""
+    """Oracle: closed-form distances (sphere, capsule, box, torus) in numpy,
+    with dyadic parameters (exact in the builders' float32 storage)."""
     rng = np.random.default_rng(12)
     p = rng.uniform(-1.5, 1.5, (2000, 3))
-    a, b = np.array([[0.1, -0.2, 0.3]]), np.array([[0.6, 0.4, -0.2]])
-    cases = {
-        "sphere": (P.spheres(a, 0.4), np.linalg.norm(p - a, axis=1) - 0.4),
-        "capsule": (P.capsules(a, b, 0.2), None),
-        "box": (P.boxes(a, [[0.3, 0.2, 0.5]], 0.05), None),
-        "torus": (P.tori(a, 0.7, 0.2), np.sqrt((np.hypot(*(p - a)[:, :2].T) - 0.7) ** 2
-                                                + (p - a)[:, 2] ** 2) - 0.2),
-    }
+    a, b = np.array([[0.125, -0.25, 0.375]]), np.array([[0.625, 0.25, 0.375]])
     ba = b - a
     h = np.clip(((p - a) * ba).sum(1) / (ba * ba).sum(), 0, 1)
-    cases["capsule"] = (cases["capsule"][0], np.linalg.norm(p - a - h[:, None] * ba, axis=1) - 0.2)
-    q = np.abs(p - a) - (np.array([0.3, 0.2, 0.5]) - 0.05)
-    cases["box"] = (cases["box"][0], np.linalg.norm(np.maximum(q, 0), axis=1)
-                    + np.minimum(q.max(1), 0) - 0.05)
+    half, rr = np.array([0.3125, 0.1875, 0.5]), 0.0625
+    q = np.abs(p - a) - (half - rr)
+    cases = {
+        "sphere": (P.spheres(a, 0.375), np.linalg.norm(p - a, axis=1) - 0.375),
+        "capsule": (P.capsules(a, b, 0.25), np.linalg.norm(p - a - h[:, None] * ba, axis=1) - 0.25),
+        "box": (P.boxes(a, [half], rr), np.linalg.norm(np.maximum(q, 0), axis=1)
+                + np.minimum(q.max(1), 0) - rr),
+        "torus": (P.tori(a, 0.6875, 0.1875), np.sqrt((np.hypot(*(p - a)[:, :2].T) - 0.6875) ** 2
+                                                    + (p - a)[:, 2] ** 2) - 0.1875),
+    }
     for name, (part, ref) in cases.items():
         got = tables.evaluate_points(P.union(part, part), p)
-        assert np.allclose(got, ref, atol=1e-12), name
+        assert np.allclose(got, ref, rtol=0, atol=1e-12), name
