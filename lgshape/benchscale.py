@@ -44,15 +44,21 @@ def model(kind: str, n: int):
     import lgshape.primitives as P
     rng = np.random.default_rng(1000 + n)
     c = rng.uniform(-1, 1, (n, 3))
+    r = (0.6 if kind == "union" else 1.3) * n ** (-1 / 3) * rng.uniform(0.5 if kind == "union"
+                                                                        else 0.7, 1.0, n)
+    # the primitives store float32 parameters: the oracle takes the same
+    c, r = (a.astype(np.float32).astype(np.float64) for a in (c, r))
     if kind == "union":
-        r = 0.6 * n ** (-1 / 3) * rng.uniform(0.5, 1.0, n)
         return P.union(P.spheres(c, r)), (c, r)
-    R = 1.3 * n ** (-1 / 3) * rng.uniform(0.7, 1.0, n)
-    return P.blend(P.spheres(c, R), threshold=0.5), (c, R)
+    return P.blend(P.spheres(c, r), threshold=0.5), (c, r)
 
 
-def union_first_root(o, d, c, r, chunk=256):
+def union_first_root(o, d, c, r, chunk=64, ray_chunk=8192):
     """Nearest ray-sphere entry t >= 0 (float64, inf where none)."""
+    if len(o) > ray_chunk:
+        return np.concatenate([union_first_root(o[s:s + ray_chunk], d[s:s + ray_chunk], c, r,
+                                                chunk, ray_chunk)
+                               for s in range(0, len(o), ray_chunk)])
     o, d = o.astype(np.float64), d.astype(np.float64)
     A = (d * d).sum(1)[:, None]                 # float32 directions: not exactly unit
     best = np.full(len(o), np.inf)
@@ -101,12 +107,13 @@ def worker(kind: str, n: int, form: str, res: int, repeats: int) -> dict:
         out = trace()
         samples.append(time.perf_counter() - t1)
     t64, hit = np.asarray(out.t64), np.asarray(out.hit)
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20     # before the oracle
     rec = {"model": kind, "n": n, "form": form, "build_s": build,
            "first_s": first, "first_frame_s": build + first,
            "steady_s": float(np.median(samples)), "rays": len(o),
            "hits": int(hit.sum()), "capped": int(np.asarray(out.capped).sum()),
            "iterations_mean": float(np.asarray(out.iterations).mean()),
-           "rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+           "rss_gb": rss,
            "cells": int(len(surf.grid.cells))}
     if surf.cell_rows is not None:
         pairs = sum(len(p) for p in surf.cell_rows.pair_row)
