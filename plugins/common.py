@@ -23,6 +23,28 @@ def lg_shapes(scene: mi.Scene) -> list:
     return [s for s in scene.shapes() if getattr(s, "IS_LGSURFACE", False)]
 
 
+def refresh_infinite_emitters(scene: mi.Scene) -> None:
+    """Give every infinite emitter (constant, envmap, directional, ...) the
+    scene's current bounds again. Mitsuba 3.9.1's ``Scene.parameters_changed``
+    calls the environment emitter's ``set_scene`` *before* it recomputes the
+    bounds (so it keeps those of the previous update) and never calls that of
+    a directional emitter; after ``params.update()`` moved or resized a shape
+    (an lgsurface or a native one), their bounding spheres would be stale and
+    the render would differ from a fresh load. ``set_scene`` only derives the
+    bounding sphere from ``scene.bbox()``: calling it again with unchanged
+    bounds changes nothing. The lg integrators call this before rendering."""
+    for emitter in scene.emitters():
+        if mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite):
+            emitter.set_scene(scene)
+
+
+def render(integrator, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+    """The lg integrators' ``render`` (``mi.render`` calls the Python method):
+    :func:`refresh_infinite_emitters`, then Mitsuba's own."""
+    refresh_infinite_emitters(scene)
+    return mi.SamplingIntegrator.render(integrator, scene, sensor, seed, spp, develop, evaluate)
+
+
 # ---------------------------------------------------------------------------
 #  Combined ray queries
 # ---------------------------------------------------------------------------

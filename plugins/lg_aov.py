@@ -4,6 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from . import common
 from .common import ray_intersect
 
 #: AOV type -> channel suffixes (the names Mitsuba 3.9.1's ``aov`` gives).
@@ -104,6 +105,11 @@ class LGAOVIntegrator(mi.SamplingIntegrator):
             return mi.Spectrum(0), hit, values
         L, valid, nested_aovs = self.nested.sample(scene, sampler, ray, medium, active)
         return L, valid, values + list(nested_aovs)
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        """Mitsuba's render, with the infinite emitters given the scene's
+        current bounds first (:func:`.common.refresh_infinite_emitters`)."""
+        return common.render(self, scene, sensor, seed, spp, develop, evaluate)
 
     def aov_names(self):
         names = [name + suffix for name, kind in self.aovs for suffix in AOV_TYPES[kind]]

@@ -4,6 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from . import common
 from .common import mis_weight, ray_intersect, ray_test, skip_area_emitters
 
 
@@ -113,6 +114,11 @@ class LGDirectIntegrator(mi.SamplingIntegrator):
             L = dr.select(active_b, L + bsdf_weight * Le * mis, L)
 
         return L, valid_ray, []
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        """Mitsuba's render, with the infinite emitters given the scene's
+        current bounds first (:func:`.common.refresh_infinite_emitters`)."""
+        return common.render(self, scene, sensor, seed, spp, develop, evaluate)
 
     def aov_names(self):
         return []

@@ -4,6 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from . import common
 from .common import mis_weight, ray_intersect, ray_test, skip_area_emitters
 
 
@@ -131,6 +132,11 @@ class LGPathIntegrator(mi.SamplingIntegrator):
             si = ray_intersect(scene, ray, active)
 
         return dr.select(valid_ray, L, 0), valid_ray, []
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        """Mitsuba's render, with the infinite emitters given the scene's
+        current bounds first (:func:`.common.refresh_infinite_emitters`)."""
+        return common.render(self, scene, sensor, seed, spp, develop, evaluate)
 
     def aov_names(self):
         return []

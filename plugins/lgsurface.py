@@ -24,6 +24,7 @@ import mitsuba as mi
 
 import lgshape
 from lgshape import surfaces
+from lgshape.expr.parser import free_names
 
 #: Relative distance (times the world box diagonal) below which a ray does not
 #: report a hit: a ray spawned from the surface must not find the point it
@@ -48,6 +49,14 @@ class LGSurface(mi.Mesh):
        - The function f(x, y, z) in lgshape's expression language, e.g.
          ``x^2 + y^2 + z^2 - 1``. The surface is f = 0; the normal points
          towards f > 0. Give either ``expr`` or ``surface``.
+     * - (named constants)
+       - |float|
+       - Any other identifier of ``expr`` (or ``expr_file``) is a named
+         constant bound to the number property of that name, e.g.
+         ``expr="x^2 + y^2 + z^2 - radius^2"`` with
+         ``<float name="radius" value="1"/>``. An identifier without such a
+         property is an error naming it; a property the expression does not
+         use is an unknown parameter.
      * - surface
        - |string|
        - A surface of the library (``lgshape.surfaces.LIBRARY``: sphere,
@@ -98,6 +107,17 @@ class LGSurface(mi.Mesh):
     The surface is rendered by the ``lg_path``, ``lg_direct`` and ``lg_aov``
     integrators; Mitsuba's own integrators do not see it.
 
+    **Scene parameters.** ``mi.traverse`` shows ``<id>.to_world``
+    (``AffineTransform4f``) and every numeric parameter of f as a
+    ``Float64``: a library surface's parameters (``<id>.R``), an expression's
+    named constants (``<id>.radius``), a primitives file's ``smoothness`` or
+    ``threshold``; all non-differentiable. After ``params.update()`` a new
+    value of a parameter of f builds a new :class:`lgshape.Surface` (its
+    compiled kernels are reused: its constants are opaque), a new
+    ``to_world`` only new matrices and bounds; the render then equals that
+    of a scene loaded with the new values. (The placeholder's own keys,
+    ``faces`` and ``vertex_*``, are rewritten from the box: leave them.)
+
     **uv parameterization.** ``uv`` are the spherical angles of the object
     space point about the centre c of the box, with the convention of
     Mitsuba's ``sphere``: u = atan2(y - c_y, x - c_x) / 2 pi in [0, 1) and
@@ -137,41 +157,124 @@ class LGSurface(mi.Mesh):
                     f"lgsurface: an emitter child ('{name}') is not supported: the "
                     "surface cannot emit light. Light the scene with a native shape "
                     "(e.g. a 'rectangle' with an 'area' emitter) or an environment.")
-        self.source, implicit, params = _read_surface(props)
-        bbox = _read_bbox(props, implicit)
-        hints = {"L": _positive(props, "L"), "G": _positive(props, "G"),
-                 "depth": _depth(props)}
+        self._source = _read_surface(props)
+        self._bbox_given = _read_bbox(props)
+        self._hints = {"L": _positive(props, "L"), "G": _positive(props, "G"),
+                       "depth": _depth(props)}
         to_world = props.get("to_world", mi.ScalarTransform4f())
         self.flip = bool(props.get("flip_normals", False))
+        # The scene parameters (mi.traverse): Dr.Jit values that
+        # SceneParameters writes in place; parameters_changed reads them.
+        # to_world is held in float32, as by Mitsuba's own shapes (the
+        # property may be float64), so that a loaded matrix and an updated
+        # one go through the same rounding.
+        m32 = np.array(to_world.matrix, dtype=np.float64).astype(np.float32)
+        self._to_world = mi.AffineTransform4f(mi.ScalarTransform4f(m32))
+        self._params = {k: mi.Float64(v) for k, v in self._source.values.items()}
+        #: How many Surfaces this shape has built (1 after loading; one more
+        #: per update that changes a parameter of f, none for to_world).
+        self.builds = 0
         super().__init__("lgsurface", 3, 1, props)
 
         unknown = props.unqueried()
         if unknown:
-            known = ", ".join(list(_OWN) + list(params))
+            known = ", ".join(dict.fromkeys(list(_OWN) + list(self._source.values)))
             raise ValueError(f"lgsurface: unknown parameter '{unknown[0]}'"
                              f"{' (and ' + ', '.join(unknown[1:]) + ')' if unknown[1:] else ''}"
-                             f"; known parameters: {known}")
+                             f"; known parameters: {known}{self._source.hint}")
 
-        try:
-            self.surface = lgshape.Surface(implicit, bbox=bbox, **hints)
-        except ValueError as err:
-            raise ValueError(f"lgsurface: {err}") from None
-
-        self.matrix = np.array(to_world.matrix, dtype=np.float64)
-        self.inverse = np.linalg.inv(self.matrix)
-        if not np.all(np.isfinite(self.inverse)):
-            raise ValueError("lgsurface: 'to_world' is not invertible")
-        self._world_box = _transform_box(self.matrix, self.surface.bbox)
-        self._jit = None
-
+        self._values = dict(self._source.values)        # the values in use
+        self.surface, self.source = self._build(self._values)
+        self._set_matrix(_matrix_of(self._to_world))
         # The placeholder: a zero-area triangle along the diagonal of the
         # world box (so the scene's bounds include the surface); Embree
         # never reports a hit on a triangle without area.
+        self._set_placeholder(faces=True)
+        super().parameters_changed(["vertex_positions", "faces"])
+
+    # ---- Scene parameters (mi.traverse / params.update()) -------------------
+
+    def traverse(self, callback):
+        """The placeholder mesh's parameters (and the BSDF's), then
+        ``to_world`` (an ``AffineTransform4f``) and every numeric parameter
+        of f (``Float64``: a library surface's parameters, an expression's
+        named constants, a primitives file's ``smoothness``/``threshold``)."""
+        super().traverse(callback)
+        flags = mi.ParamFlags.NonDifferentiable
+        callback.put("to_world", self._to_world, flags)
+        for name, value in self._params.items():
+            callback.put(name, value, flags)
+
+    def parameters_changed(self, keys=None):
+        """Rebuild what changed: a new :class:`lgshape.Surface` where a
+        parameter of f has a new value (compiled kernels are reused: its
+        constants are opaque), only the matrices and bounds where ``to_world``
+        alone changed. Invalid values raise ValueError and are put back."""
+        keys = list(keys or [])
+        if not hasattr(self, "surface"):                 # still loading
+            return super().parameters_changed(keys)
+        every = not keys                                 # Mitsuba: [] means everything
+        names = [k for k in self._params if every or k in keys]
+        try:
+            values = dict(self._values)
+            for k in names:
+                values[k] = _read_value(k, self._params[k])
+            matrix = (_matrix_of(self._to_world) if every or "to_world" in keys
+                      else self.matrix)
+            new_f = values != self._values
+            new_world = not np.array_equal(matrix, self.matrix)
+            surface, source = self._build(values) if new_f else (None, None)
+            if new_world:
+                _invert(matrix)                          # checks before changing anything
+        except ValueError:
+            for k in names:                              # put the values in use back
+                mi.set_property(self._params[k], self._values[k])
+            mi.set_property(self._to_world, mi.ScalarTransform4f(self.matrix.astype(np.float32)))
+            raise
+        if new_f:
+            self.surface, self.source, self._values = surface, source, values
+        if new_world:
+            self._set_matrix(matrix)
+        elif new_f:
+            self._set_matrix(self.matrix)                # the box may have changed
+        base = [k for k in keys if k != "to_world" and k not in self._params]
+        if new_f or new_world:
+            self._set_placeholder()
+            base.append("vertex_positions")
+        if base or every:
+            super().parameters_changed(base)
+
+    def _build(self, values):
+        """The Surface of f for these parameter values, and its description."""
+        implicit = self._source.build(values)
+        bbox = self._bbox_given
+        if bbox is None:
+            bbox = getattr(implicit, "bbox", None)
+            if bbox is None:
+                raise ValueError("lgsurface: an 'expr' needs a box: give 'bbox_min' and "
+                                 "'bbox_max' (points, e.g. <point name=\"bbox_min\" "
+                                 "value=\"-1.5, -1.5, -1.5\"/>)")
+        try:
+            surface = lgshape.Surface(implicit, bbox=bbox, **self._hints)
+        except ValueError as err:
+            raise ValueError(f"lgsurface: {err}") from None
+        self.builds += 1
+        return surface, self._source.describe(values, implicit)
+
+    def _set_matrix(self, matrix):
+        """Object-to-world matrix (float64, 4x4): matrices, world box; the
+        Dr.Jit copies are made again on next use (:meth:`_matrices`)."""
+        self.matrix = matrix
+        self.inverse = _invert(matrix)
+        self._world_box = _transform_box(self.matrix, self.surface.bbox)
+        self._jit = None
+
+    def _set_placeholder(self, faces=False):
         lo, hi = self._world_box
-        params_ = mi.traverse(self)
-        params_["vertex_positions"] = mi.Float([*lo, *hi, *lo])
-        params_["faces"] = mi.UInt32([0, 1, 2])
-        params_.update()
+        params = mi.traverse(self)
+        params["vertex_positions"] = mi.Float([*lo, *hi, *lo])
+        if faces:
+            params["faces"] = mi.UInt32([0, 1, 2])
 
     # ---- Upstream Python-shape interface -----------------------------------
 
@@ -271,8 +374,24 @@ class LGSurface(mi.Mesh):
 
 # ---- Reading the properties -------------------------------------------------
 
-def _read_surface(props):
-    """-> (description, expression or Implicit, names of the library parameters)."""
+#: Names an expression's constant cannot take: the shape's own parameters and
+#: the keys of the placeholder mesh in ``mi.traverse``.
+_RESERVED = _OWN + ("faces", "vertex_positions", "vertex_normals", "vertex_texcoords",
+                    "silhouette_sampling_weight", "bsdf")
+
+
+class _Source:
+    """How f is built from its numeric parameters (the scene parameters
+    besides ``to_world``): ``values`` (name -> float, as loaded),
+    ``build(values)`` -> an expression, library Implicit or table form,
+    ``describe(values, built)`` -> text for ``to_string``."""
+
+    def __init__(self, values, build, describe, hint=""):
+        self.values, self.build, self.describe = dict(values), build, describe
+        self.hint = hint        # appended to the unknown-parameter error
+
+
+def _read_surface(props) -> _Source:
     given = [k for k in ("expr", "expr_file", "surface", "primitives") if k in props]
     if len(given) > 1:
         raise ValueError(f"lgsurface: give one of 'expr', 'expr_file', 'surface' or "
@@ -283,18 +402,11 @@ def _read_surface(props):
         path = _resolve(props.get("expr_file"), "expr_file")
         with open(path) as fh:
             text = fh.read()
-        try:
-            return f"expr_file '{path}'", lgshape.parse(text), ()
-        except lgshape.ParseError as err:
-            raise ValueError(f"lgsurface: malformed expression in '{path}': {err}") from None
-    has_expr, has_surface = "expr" in props, "surface" in props
-    if has_expr:
+        return _read_expr(props, text, f"expr_file '{path}'", f"expression in '{path}'")
+    if "expr" in props:
         text = props.get("expr")
-        try:
-            return f"expr '{text}'", lgshape.parse(text), ()
-        except lgshape.ParseError as err:
-            raise ValueError(f"lgsurface: malformed 'expr': {err}") from None
-    if not has_surface:
+        return _read_expr(props, text, f"expr '{text}'", "'expr'")
+    if "surface" not in props:
         raise ValueError("lgsurface: needs 'expr' (an expression), 'expr_file', 'primitives' "
                          f"(a primitives file) or 'surface' (one of {', '.join(surfaces.LIBRARY)})")
     name = props.get("surface")
@@ -309,48 +421,119 @@ def _read_surface(props):
         if p in props:
             raise ValueError(f"lgsurface: parameter '{p}' of surface '{name}' cannot be "
                              "set from a scene; use the Python API")
-    kwargs = {}
+    values = {}
     for p in numeric:
+        values[p.name] = float(p.default)
         if p.name in props:
             v = props.get(p.name)
-            if not isinstance(v, numbers.Real):
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
                 raise ValueError(f"lgsurface: parameter '{p.name}' of surface '{name}' "
                                  f"must be a number, got {v!r}")
-            kwargs[p.name] = float(v)
-    args = ", ".join(f"{k}={v:g}" for k, v in kwargs.items())
-    return f"{name}({args})", fn(**kwargs), tuple(p.name for p in numeric)
+            values[p.name] = float(v)
+
+    def build(values):
+        try:
+            return fn(**values)
+        except (ValueError, ZeroDivisionError, OverflowError) as err:
+            args = ", ".join(f"{k}={v:g}" for k, v in values.items())
+            raise ValueError(f"lgsurface: surface '{name}' with {args}: {err}") from None
+
+    def describe(values, _):
+        return f"{name}({', '.join(f'{k}={v:g}' for k, v in values.items())})"
+    return _Source(values, build, describe)
+
+
+def _read_expr(props, text, what, where) -> _Source:
+    """An expression whose free identifiers are bound to number properties
+    of the shape (its named constants)."""
+    try:
+        free = free_names(text)
+    except lgshape.ParseError as err:
+        raise ValueError(f"lgsurface: malformed {where}: {err}") from None
+    values = {}
+    for name, pos in free:
+        if name in _RESERVED:
+            raise ValueError(f"lgsurface: malformed {where}: "
+                             + str(lgshape.ParseError(
+                                 text, pos, f"the name {name!r} cannot be a named constant: "
+                                 f"it is a parameter of lgsurface itself (one of "
+                                 f"{', '.join(_RESERVED)}); rename the constant")))
+        if name in props:
+            v = props.get(name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) \
+                    or not math.isfinite(float(v)):
+                raise ValueError(f"lgsurface: '{name}' is a named constant of the expression "
+                                 f"but its property is not a finite number: {v!r}")
+            values[name] = float(v)
+    unbound = [name for name, _ in free if name not in values]
+
+    def build(values):
+        try:
+            return lgshape.parse(text, constants=values)
+        except lgshape.ParseError as err:
+            hint = ""
+            if err.identifier is not None:
+                hint = (f"\n  a named constant needs a number property of the shape, e.g. "
+                        f"<float name=\"{err.identifier}\" value=\"1\"/>")
+            raise ValueError(f"lgsurface: malformed {where}: {err}{hint}") from None
+        except ValueError as err:
+            raise ValueError(f"lgsurface: {where}: {err}") from None
+
+    if unbound:          # the parser's error names the first one (before unknown parameters)
+        build(values)
+
+    def describe(values, _):
+        return what + (f" with {', '.join(f'{k}={v:g}' for k, v in values.items())}"
+                       if values else "")
+    return _Source(values, build, describe,
+                   " (a number property is a named constant only where the expression "
+                   "uses its name)")
 
 
 def _resolve(name, what):
-    path = str(mi.Thread.thread().file_resolver().resolve(name))
+    path = str(mi.file_resolver().resolve(name))
     if not os.path.isfile(path):
         raise ValueError(f"lgsurface: '{what}' file not found: {name}")
     return path
 
 
-def _read_primitives(props):
+def _read_primitives(props) -> _Source:
     from lgshape import primitives
     path = _resolve(props.get("primitives"), "primitives")
     combine = props.get("combine", "union")
-    kw = {}
+    values = {}
     if combine == "smooth_union":
-        kw["k"] = _positive(props, "smoothness")
-        if kw["k"] is None:
+        values["smoothness"] = _positive(props, "smoothness")
+        if values["smoothness"] is None:
             raise ValueError("lgsurface: combine 'smooth_union' needs 'smoothness' (a radius)")
-    elif combine == "blend" and "threshold" in props:
-        kw["threshold"] = _positive(props, "threshold")
+    elif combine == "blend":
+        t = _positive(props, "threshold")
+        values["threshold"] = float(inspect.signature(primitives.blend)
+                                    .parameters["threshold"].default) if t is None else t
     for k in ("smoothness", "threshold"):
         if k in props and not ((k == "smoothness" and combine == "smooth_union")
                                or (k == "threshold" and combine == "blend")):
             raise ValueError(f"lgsurface: '{k}' does not apply to combine '{combine}'")
-    try:
-        tf = primitives.load(path, combine, **kw)
-    except ValueError as err:
-        raise ValueError(f"lgsurface: {err}") from None
-    return f"primitives '{os.path.basename(path)}' ({combine}, {tf.rows})", tf, ()
+
+    def build(values):
+        kw = {}
+        for k, v in values.items():
+            if not v > 0:
+                raise ValueError(f"lgsurface: '{k}' must be a positive number, got {v!r}")
+            kw["k" if k == "smoothness" else k] = v
+        try:
+            return primitives.load(path, combine, **kw)
+        except ValueError as err:
+            raise ValueError(f"lgsurface: {err}") from None
+
+    def describe(values, tf):
+        extra = "".join(f", {k}={v:g}" for k, v in values.items())
+        return f"primitives '{os.path.basename(path)}' ({combine}{extra}, {tf.rows})"
+    return _Source(values, build, describe)
 
 
-def _read_bbox(props, implicit):
+def _read_bbox(props):
+    """The box given by bbox_min / bbox_max, or None (then f brings one)."""
     given = [k in props for k in ("bbox_min", "bbox_max")]
     if all(given):
         lo, hi = (tuple(float(v) for v in props.get(k)) for k in ("bbox_min", "bbox_max"))
@@ -361,10 +544,41 @@ def _read_bbox(props, implicit):
     if any(given):
         missing = "bbox_max" if given[0] else "bbox_min"
         raise ValueError(f"lgsurface: '{missing}' is missing (give both bbox_min and bbox_max)")
-    if isinstance(implicit, surfaces.Implicit) or getattr(implicit, "bbox", None) is not None:
-        return implicit.bbox
-    raise ValueError("lgsurface: an 'expr' needs a box: give 'bbox_min' and 'bbox_max' "
-                     "(points, e.g. <point name=\"bbox_min\" value=\"-1.5, -1.5, -1.5\"/>)")
+    return None
+
+
+def _read_value(name, value) -> float:
+    """A scene parameter's new value: one finite number."""
+    if dr.width(value) != 1:
+        raise ValueError(f"lgsurface: parameter '{name}' must hold one value, "
+                         f"got {dr.width(value)}")
+    v = float(value[0])
+    if not math.isfinite(v):
+        raise ValueError(f"lgsurface: parameter '{name}' must be finite, got {v}")
+    return v
+
+
+def _matrix_of(transform) -> np.ndarray:
+    """The 4x4 float64 matrix of a (width-1) AffineTransform4f."""
+    m = np.array(transform.matrix, dtype=np.float64)
+    if m.shape != (4, 4):
+        if m.shape != (4, 4, 1):
+            raise ValueError(f"lgsurface: 'to_world' must be one transform, got an array "
+                             f"of shape {m.shape}")
+        m = m[..., 0]
+    if not np.all(np.isfinite(m)):
+        raise ValueError("lgsurface: 'to_world' must be finite")
+    return m
+
+
+def _invert(matrix) -> np.ndarray:
+    try:
+        inverse = np.linalg.inv(matrix)
+    except np.linalg.LinAlgError:
+        inverse = np.full((4, 4), np.nan)
+    if not np.all(np.isfinite(inverse)):
+        raise ValueError("lgsurface: 'to_world' is not invertible")
+    return inverse
 
 
 def _positive(props, name):

@@ -8,12 +8,18 @@ Grammar (whitespace is ignored; ``^`` and ``**`` are the same)::
     unary   := ('-' | '+') unary | power
     power   := atom (('^' | '**') unary)?        exponent: a constant integer
     atom    := NUMBER | NAME | NAME '(' expr (',' expr)* ')' | '(' expr ')'
-    NAME    := x | y | z | pi | e | a function name
+    NAME    := x | y | z | pi | e | a function name | a bound constant
     NUMBER  := 12 | 1.5 | .5 | 1e-3 | 2.5E+2      (a finite float64)
 
 Functions: sqrt, exp, log, sin, cos, abs (one argument), min, max (two or
 more). ``-x^2`` is ``-(x^2)``; ``x^2^3`` is ``x^(2^3)``. Errors are
 :class:`ParseError`, which names the position and what was expected.
+
+Named constants: ``parse(text, constants={"radius": 0.5})`` reads the
+identifier ``radius`` as the constant 0.5 (exactly as if the number had been
+written there). Any other identifier that is not a variable, ``pi``, ``e``
+or a function is an error naming it (:attr:`ParseError.identifier`).
+:func:`free_names` lists the identifiers of a text that need such a binding.
 
 The parser is iterative, so neither the length of the text nor its nesting
 depth is limited by Python's recursion limit: it is the recursive descent of
@@ -32,6 +38,7 @@ length of the text.
 from __future__ import annotations
 
 import math
+import numbers
 import re
 
 from . import node as N
@@ -46,6 +53,7 @@ _BUILD = {"sqrt": N.sqrt, "exp": N.exp, "log": N.log, "sin": N.sin, "cos": N.cos
 assert set(_BUILD) == set(FUNCTIONS), "parser and op table disagree"
 
 _VARIABLES = ("x", "y", "z")
+_NAME = re.compile(r"[A-Za-z_]\w*")
 
 # Frames of the explicit parse stack (the pending calls of the recursive
 # descent), as tuples whose first item is one of:
@@ -66,10 +74,11 @@ _SHOWN = 160   # a longer text is shown as an excerpt around the error
 class ParseError(ValueError):
     """A malformed expression; ``pos`` is the 0-based character position.
     The message quotes the text with a caret under that position (for a
-    text over 160 characters, the 160 or so around it)."""
+    text over 160 characters, the 160 or so around it). ``identifier``: the
+    name, for an unknown identifier (else None)."""
 
-    def __init__(self, text: str, pos: int, message: str):
-        self.text, self.pos = text, pos
+    def __init__(self, text: str, pos: int, message: str, identifier: str | None = None):
+        self.text, self.pos, self.identifier = text, pos, identifier
         shown, caret = text, pos
         if len(text) > _SHOWN:
             start = max(0, min(pos - _SHOWN // 2, len(text) - _SHOWN))
@@ -105,9 +114,14 @@ def _number(text: str, value: str, pos: int) -> N.Expr:
     return N.const(v)
 
 
+def _is_builtin(name: str) -> bool:
+    return name in _VARIABLES or name in CONSTANTS or name in FUNCTIONS
+
+
 class _Parser:
-    def __init__(self, text: str):
+    def __init__(self, text: str, constants: dict):
         self.text = text
+        self.constants = constants
         self.tokens = _tokenize(text)
         self.i = 0
 
@@ -149,10 +163,15 @@ class _Parser:
                     self.expect("(")
                     push((_CALL, value, pos, []))
                     continue                       # parse the first argument
+                elif value in self.constants:
+                    e = self.constants[value]
                 else:
                     known = ", ".join([*_VARIABLES, *CONSTANTS, *FUNCTIONS])
+                    if self.constants:
+                        known += "; bound constants: " + ", ".join(map(_short, self.constants))
                     raise ParseError(text, pos,
-                                     f"unknown identifier {_short(value)!r} (known: {known})")
+                                     f"unknown identifier {_short(value)!r} (known: {known})",
+                                     identifier=value)
             elif kind == "op" and value == "(":
                 self.i += 1
                 push((_PAREN,))
@@ -226,8 +245,40 @@ class _Parser:
                 return e
 
 
-def parse(text: str) -> N.Expr:
-    """Parse a string of the expression language into an expression."""
+def parse(text: str, constants=None) -> N.Expr:
+    """Parse a string of the expression language into an expression.
+
+    ``constants``: optional mapping of identifier -> finite number; each such
+    identifier in the text stands for that constant. Names of variables,
+    ``pi``, ``e`` and functions cannot be bound (ValueError)."""
     if not isinstance(text, str):
         raise TypeError(f"parse() takes a string, not {type(text).__name__}")
-    return _Parser(text).parse()
+    bound = {}
+    for name, value in (constants or {}).items():
+        if not isinstance(name, str) or not _NAME.fullmatch(name):
+            raise ValueError(f"constant name {name!r} is not an identifier")
+        if _is_builtin(name):
+            raise ValueError(f"constant name {name!r} is a variable, constant or function "
+                             "of the expression language and cannot be bound")
+        if isinstance(value, bool) or not isinstance(value, numbers.Real):
+            raise ValueError(f"constant {name!r} must be a number, got {value!r}")
+        try:
+            bound[name] = N.const(value)
+        except ValueError as err:
+            raise ValueError(f"constant {name!r}: {err}") from None
+    return _Parser(text, bound).parse()
+
+
+def free_names(text: str) -> list:
+    """The identifiers of ``text`` that are neither variables (x, y, z),
+    constants (pi, e) nor function names: ``[(name, position), ...]`` in
+    order of first appearance (0-based position). These are the names
+    :func:`parse` needs bound in ``constants``. Raises :class:`ParseError`
+    for a character no token starts with."""
+    if not isinstance(text, str):
+        raise TypeError(f"free_names() takes a string, not {type(text).__name__}")
+    seen = {}
+    for kind, value, pos in _tokenize(text):
+        if kind == "name" and not _is_builtin(value) and value not in seen:
+            seen[value] = pos
+    return list(seen.items())
