@@ -66,6 +66,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from . import stability
+from .camera import look_rays
 from .reference import clip_to_box
 from .surfaces import SPIKE_AXES, Implicit, spikes
 
@@ -126,19 +127,7 @@ def orbit_rays(res: int, azimuth_deg: float, cfg: TemporalConfig = FULL):
     ``azimuth_deg`` about the z axis and elevation ``cfg.elevation``."""
     az, el = math.radians(azimuth_deg), math.radians(cfg.elevation)
     view = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
-    eye = cfg.distance * view
-    fwd = -view
-    right = np.cross(fwd, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, fwd)
-    s = math.tan(math.radians(cfg.fov) / 2)
-    u = ((np.arange(res) + 0.5) / res * 2 - 1) * s
-    v = (1 - (np.arange(res) + 0.5) / res * 2) * s
-    U, V = np.meshgrid(u, v)
-    d = fwd + U.reshape(-1, 1) * right + V.reshape(-1, 1) * up
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    o = np.broadcast_to(eye, d.shape)
-    return np.ascontiguousarray(o, np.float32), np.ascontiguousarray(d, np.float32)
+    return look_rays(cfg.distance * view, -view, res, res, cfg.fov)
 
 
 def animation_rays(cfg: TemporalConfig):
@@ -655,20 +644,6 @@ def report(results, chart_path="charts/temporal.png", strip_path=None) -> list[s
 
 # ---- Command line ---------------------------------------------------------------------
 
-def _finite(v):
-    if isinstance(v, dict):
-        return {k: _finite(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_finite(x) for x in v]
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        return float(v) if math.isfinite(v) else None
-    return v
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m lgshape.benchtemporal",
                                 description="The temporal-stability section of the benchmark.")
@@ -687,6 +662,7 @@ def main(argv=None) -> int:
     results = run(log, quick=args.quick, strip=strip)
     chart(results, os.path.join(args.out, "temporal.png"))
     with open(os.path.join(args.out, "temporal.json"), "w") as fh:
+        from .bench import _finite
         json.dump(_finite(results), fh, indent=1, allow_nan=False)
     with open(os.path.join(args.out, "TEMPORAL.md"), "w") as fh:
         fh.write("\n".join(report(results, "temporal.png", "temporal_strip.png")) + "\n")
