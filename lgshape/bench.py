@@ -797,6 +797,9 @@ def report(results, command, written) -> str:
                      f"{c['description']}. Oracle: {c['oracle']}.")
         L.append("")
 
+    if results.get("speed"):
+        from . import benchspeed
+        L += benchspeed.report(results["speed"])
     if results.get("scale"):
         from . import benchscale
         L += benchscale.report(results["scale"], meta["res"])
@@ -867,6 +870,9 @@ def _parser():
                    help="only these library surfaces")
     p.add_argument("--no-stability", dest="stability", action="store_false",
                    help="skip the stability suite")
+    p.add_argument("--no-speed", dest="speed", action="store_false",
+                   help="skip the speed section (camera, incoherent and shadow rays against the "
+                   "sphere tracer and the mesh; the Cornell render; compile latency)")
     p.add_argument("--no-scale", dest="scale", action="store_false",
                    help="skip the scale section (cost against the number of primitives)")
     p.add_argument("--no-temporal", dest="temporal", action="store_false",
@@ -901,20 +907,19 @@ def main(argv=None) -> int:
     stab, notes = bench_stability(cfg, log) if args.stability else ([], [])
     results = {"meta": meta, "records": records, "stability": stab, "cases": notes}
     os.makedirs(os.path.join(args.out, "charts"), exist_ok=True)
+    if args.speed:
+        from . import benchspeed
+        results["speed"] = benchspeed.run(log, quick=args.quick)
+        benchspeed.chart(results["speed"], os.path.join(args.out, "charts", "speed.png"))
     if args.scale:
         from . import benchscale
         results["scale"] = benchscale.run(log, quick=args.quick, res=cfg.res,
                                           repeats=cfg.repeats)
         benchscale.chart(results["scale"], os.path.join(args.out, "charts", "scale.png"))
     if args.temporal:
-        try:
-            from . import benchtemporal
-        except ImportError:
-            benchtemporal = None
-        if benchtemporal is not None:
-            results["temporal"] = benchtemporal.run(log, quick=args.quick)
-            benchtemporal.chart(results["temporal"],
-                                os.path.join(args.out, "charts", "temporal.png"))
+        from . import benchtemporal
+        results["temporal"] = benchtemporal.run(log, quick=args.quick)
+        benchtemporal.chart(results["temporal"], os.path.join(args.out, "charts", "temporal.png"))
     written = charts(records, args.out)
     results["meta"]["seconds"] = round(time.perf_counter() - t_start, 1)
     with open(os.path.join(args.out, "results.json"), "w") as fh:

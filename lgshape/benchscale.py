@@ -142,7 +142,7 @@ def run(log, quick=False, res=512, repeats=5) -> list:
     for kind in ("union", "blend"):
         for n in ns:
             for form in ("tables", "unpruned"):
-                if form == "unpruned" and n > UNPRUNED_MAX:
+                if form == "unpruned" and n > (10 if quick else UNPRUNED_MAX):
                     continue
                 with tempfile.TemporaryDirectory(prefix="lgshape-scale-") as home:
                     env = dict(os.environ, HOME=home)       # a cold Dr.Jit kernel cache

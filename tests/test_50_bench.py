@@ -89,7 +89,9 @@ def quick(tmp_path_factory):
     """One `lgshape bench --quick` run through the command line."""
     from lgshape.cli import main
     out = tmp_path_factory.mktemp("bench")
-    assert main(["bench", "--quick", "--out", str(out)]) == 0
+    # (the speed, scale and temporal sections have their own tests)
+    assert main(["bench", "--quick", "--no-speed", "--no-scale", "--no-temporal",
+                 "--out", str(out)]) == 0
     with open(out / "results.json") as fh:
         return out, json.load(fh)
 
@@ -242,3 +244,19 @@ def test12_domain_baseline_failures_show(quick):
         assert r["note"].startswith("refused"), r
     (r,) = _stab(res, "far_small_sphere_origin", "march")    # step < ulp(t): stalls, capped
     assert r["capped"] > 0 and r["missed"] >= r["capped"], r
+
+
+def test05_scale_worker_and_report():
+    """The scale section's measurement on a small case: the union's oracle
+    (analytic nearest ray-sphere entry) finds 0 wrong rays, the blend's
+    (a sign change of the whole f at every hit) too; the report has its
+    table and the targets."""
+    from lgshape import benchscale
+    recs = [benchscale.worker(kind, 10, "tables", 48, 1) for kind in ("union", "blend")]
+    for r in recs:
+        assert r["wrong"] == 0 and r["capped"] == 0 and r["hits"] > 100, r
+        assert r["rows_per_cell"] >= 1.0 and r["steady_s"] > 0
+    recs.append(dict(recs[0], n=1000))      # the verdicts need an N = 1000 row
+    text = "\n".join(benchscale.report(recs, 48))
+    assert "## Scale" in text and "| union | 10 | tables |" in text
+    assert "build at N=1000 (s)" in text
