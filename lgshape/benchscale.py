@@ -76,6 +76,20 @@ def union_first_root(o, d, c, r, chunk=64, ray_chunk=8192):
     return best
 
 
+def peak_rss_gb() -> float:
+    """This process's peak resident memory (VmHWM: its own address space;
+    getrusage's ru_maxrss would also count the parent's peak, which Linux
+    keeps across fork and exec)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 2**20
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+
+
 def worker(kind: str, n: int, form: str, res: int, repeats: int) -> dict:
     """One measurement (run in its own process)."""
     import drjit as dr
@@ -107,7 +121,7 @@ def worker(kind: str, n: int, form: str, res: int, repeats: int) -> dict:
         out = trace()
         samples.append(time.perf_counter() - t1)
     t64, hit = np.asarray(out.t64), np.asarray(out.hit)
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20     # before the oracle
+    rss = peak_rss_gb()                                 # before the oracle
     rec = {"model": kind, "n": n, "form": form, "build_s": build,
            "first_s": first, "first_frame_s": build + first,
            "steady_s": float(np.median(samples)), "rays": len(o),
@@ -219,6 +233,10 @@ def chart(records, path):
     plt.close(fig)
 
 
+def _rows(r) -> str:
+    return "–" if r.get("rows_per_cell") is None else f"{r['rows_per_cell']:.1f}"
+
+
 def report(records, res) -> list:
     L = ["## Scale: cost against the number of primitives\n",
          f"Union of N random spheres and blend of N soft blobs, {res} x {res} camera rays; each "
@@ -237,7 +255,7 @@ def report(records, res) -> list:
             continue
         L.append(f"| {r['model']} | {r['n']} | {r['form']} | {r['build_s']:.2f} | "
                  f"{r['first_frame_s']:.2f} | {r['steady_s'] * 1e3:.1f} | {r['rss_gb']:.2f} | "
-                 f"{r.get('rows_per_cell', float('nan')):.1f} | {r['iterations_mean']:.1f} | "
+                 f"{_rows(r)} | {r['iterations_mean']:.1f} | "
                  f"{r['hits']} | {r['wrong']} | {r['capped']} |")
     v = verdicts(records)
     if v:
