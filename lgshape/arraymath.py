@@ -32,6 +32,9 @@ class NumpyMath:
     def const(self, c: float):
         return np.float64(c)
 
+    def named(self, name: str, c: float):
+        return np.float64(c)
+
     def errstate(self):
         return np.errstate(all="ignore")
 
@@ -62,6 +65,16 @@ class DrJitMath:
         v = self._consts.get(c)
         if v is None:
             v = self._consts[c] = self.dr.opaque(self.Float, c)
+        return v
+
+    def named(self, name: str, c: float):
+        """A named constant: its own opaque value, never shared with a
+        constant that happens to have the same value (so the kernel's code
+        does not depend on the values)."""
+        key = ("named", name, c)
+        v = self._consts.get(key)
+        if v is None:
+            v = self._consts[key] = self.dr.opaque(self.Float, c)
         return v
 
     def errstate(self):

@@ -183,7 +183,7 @@ def substitute(e: Expr, values: dict) -> Expr:
     for n in topological([e]):
         if n.op == "var":
             out[id(n)] = Expr.lift(values[n.param]) if n.param in values else n
-        elif n.op == "const":
+        elif n.op in ("const", "named"):
             out[id(n)] = n
         else:
             args = [out[id(a)] for a in n.args]
@@ -240,9 +240,9 @@ def _structure(e: Expr):
     index, key, consts = {}, [], []
     for i, n in enumerate(nodes):
         index[id(n)] = i
-        if n.op == "const":
+        if n.op in ("const", "named"):     # named constants go to the table too
             key.append(("c",))
-            consts.append(n.param)
+            consts.append(n.param if n.op == "const" else n.param[1])
         elif n.op == "var":
             key.append(("v", n.param))
         else:
@@ -331,7 +331,7 @@ def find_tables(f: Expr, min_rows: int = MIN_ROWS) -> TableForm | None:
                 acc = (acc + term if s > 0 else acc - term) if op == "add" else \
                     (minimum(acc, term) if op == "min" else maximum(acc, term))
             out[id(n)] = acc
-        elif n.op in ("const", "var"):
+        elif n.op in ("const", "named", "var"):
             out[id(n)] = n
         else:
             args = [out.get(id(a), a) for a in n.args]
@@ -386,8 +386,8 @@ def _exact_zero(nodes, vals, env, P):
     structural proof from the intervals of its arguments)."""
     z, ival = {}, {id(n): v for n, v in zip(nodes, vals)}
     for n in nodes:
-        if n.op == "const":
-            z[id(n)] = np.full(P, n.param == 0.0)
+        if n.op in ("const", "named"):
+            z[id(n)] = np.full(P, (n.param if n.op == "const" else n.param[1]) == 0.0)
         elif n.op == "var":
             val = env.get(n.param)
             z[id(n)] = (np.broadcast_to(val == 0.0, P) if not isinstance(val, iv.Interval)

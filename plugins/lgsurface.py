@@ -433,14 +433,43 @@ def _read_surface(props) -> _Source:
 
     def build(values):
         try:
-            return fn(**values)
+            spec = fn(**values)
         except (ValueError, ZeroDivisionError, OverflowError) as err:
             args = ", ".join(f"{k}={v:g}" for k, v in values.items())
             raise ValueError(f"lgsurface: surface '{name}' with {args}: {err}") from None
+        return _with_named_constants(fn, values, spec)
 
     def describe(values, _):
         return f"{name}({', '.join(f'{k}={v:g}' for k, v in values.items())})"
     return _Source(values, build, describe)
+
+
+def _with_named_constants(fn, values, spec):
+    """The library surface with its parameters as named constants in the
+    expression (so that another value keeps the expression's structure and
+    its compiled kernel), where the function builds its expression from them
+    with arithmetic only; its box comes from the numbers. A function that
+    computes with a parameter in Python (a square root, a comparison) keeps
+    the numbers."""
+    from lgshape.expr.node import named
+    try:
+        shaped = fn(**{k: named(k, v) for k, v in values.items()})
+        if not isinstance(shaped.expr, lgshape.Expr):
+            return spec
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError, AttributeError):
+        return spec
+    # the same function: equal values at sample points of the box
+    lo, hi = (np.asarray(b, np.float64) for b in spec.bbox)
+    p = lo + (hi - lo) * np.random.default_rng(0).uniform(0, 1, (64, 3))
+    from lgshape.arraymath import NUMPY
+    from lgshape.expr import evaluate
+    env = {v: p[:, i] for i, v in enumerate("xyz")}
+    with np.errstate(all="ignore"):
+        a = np.broadcast_to(evaluate(spec.expr, env, NUMPY), 64)
+        b = np.broadcast_to(evaluate(shaped.expr, env, NUMPY), 64)
+    same = np.allclose(a, b, rtol=1e-12, atol=1e-12 * (1 + np.nanmax(np.abs(a), initial=0)),
+                       equal_nan=True)
+    return surfaces.Implicit(spec.name, shaped.expr, spec.bbox) if same else spec
 
 
 def _read_expr(props, text, what, where) -> _Source:

@@ -87,9 +87,18 @@ def test01_parser_named_constants():
     # Oracle: the same text with the number written in place of the name.
     assert free_names("x^2 + y^2 + z^2 - radius^2 + k*sin(pi*x) + radius") == \
         [("radius", 18), ("k", 29)]
-    assert parse("x^2 + y^2 + z^2 - radius^2", constants={"radius": 0.5}) is \
-        parse("x^2 + y^2 + z^2 - 0.5^2")
-    assert parse("x^n - a", constants={"n": 3, "a": -2.5}) is parse("x^3 - -2.5")
+    # (named constants stay leaves of their own, never folded: the same
+    # function, compared by value at sample points)
+    import numpy as np
+    from lgshape.arraymath import NUMPY
+    from lgshape.expr import evaluate
+    p = np.random.default_rng(0).uniform(-2, 2, (100, 3))
+    env = {v: p[:, i] for i, v in enumerate("xyz")}
+    for text, consts, plain in (("x^2 + y^2 + z^2 - radius^2", {"radius": 0.5},
+                                 "x^2 + y^2 + z^2 - 0.5^2"),
+                                ("x^n - a", {"n": 3, "a": -2.5}, "x^3 - -2.5")):
+        assert np.array_equal(evaluate(parse(text, constants=consts), env, NUMPY),
+                              evaluate(parse(plain), env, NUMPY))
     with pytest.raises(ParseError, match=r"unknown identifier 'w' .*bound constants: a.* "
                                          r"at position 7") as err:
         parse("x + 2*w", constants={"a": 1.0})

@@ -41,7 +41,7 @@ def _derivatives(roots, seedings) -> list[tuple[Expr, ...]]:
     d = {}
     for n in topological(roots):
         op = n.op
-        if op == "const":
+        if op in ("const", "named"):
             d[id(n)] = zeros
         elif op == "var":
             d[id(n)] = tuple(Expr.lift(s.get(n.param, ZERO)) for s in seedings)

@@ -31,6 +31,8 @@ def evaluate(roots, env: dict, m=None):
         for n in topological(roots):
             if n.op == "const":
                 v = m.const(n.param)
+            elif n.op == "named":
+                v = m.named(*n.param)
             elif n.op == "var":
                 v = _lookup(env, n.param)
             else:
@@ -55,8 +57,8 @@ def evaluate_interval(roots, env: dict, m):
     maybe_empty = set()      # nodes below a sqrt or log: empty where undefined
     with m.errstate():
         for n in topological(roots):
-            if n.op == "const":
-                memo[id(n)] = m.const(n.param)
+            if n.op in ("const", "named"):
+                memo[id(n)] = m.const(n.param) if n.op == "const" else m.named(*n.param)
                 continue
             if n.op == "var":
                 memo[id(n)] = _lookup(env, n.param)
@@ -110,8 +112,9 @@ def evaluate_with_error(roots, env: dict, env_error: dict, m, safety: bool = Tru
     val, err = {}, {}
     with m.errstate():
         for n in topological(roots):
-            if n.op == "const":
-                val[id(n)], err[id(n)] = m.const(n.param), 0.0
+            if n.op in ("const", "named"):
+                val[id(n)] = m.const(n.param) if n.op == "const" else m.named(*n.param)
+                err[id(n)] = 0.0
                 continue
             if n.op == "var":
                 val[id(n)] = _lookup(env, n.param)

@@ -138,6 +138,16 @@ def var(name: str) -> Expr:
     return Expr("var", (), name)
 
 
+def named(name: str, value: float) -> Expr:
+    """A named constant (a scene parameter): a leaf with the value ``value``
+    that construction never folds or merges with another constant of the
+    same value, so the expression's structure, and with it the compiled
+    kernel, does not depend on the value (0, 1 or a value that another
+    constant happens to have included)."""
+    c = Expr.lift(value)                     # checks: a finite number
+    return Expr("named", (), (str(name), c.param))
+
+
 ZERO, ONE = const(0.0), const(1.0)
 
 
@@ -251,9 +261,12 @@ def power(a, n) -> Expr:
     """``a ** n`` for an integer n (negative n means ``1 / a ** -n``)."""
     a = Expr.lift(a)
     if isinstance(n, Expr):
-        if not n.is_const:
+        if n.op == "named":        # an exponent is structure: its value is used
+            n = n.param[1]
+        elif not n.is_const:
             raise ValueError("the exponent of ^ must be a constant integer")
-        n = n.param
+        else:
+            n = n.param
     if isinstance(n, bool) or not isinstance(n, numbers.Real) or (
             not isinstance(n, numbers.Integral) and not float(n).is_integer()):
         raise ValueError(f"only integer powers are supported (got {n!r}); use sqrt() for roots")

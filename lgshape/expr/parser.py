@@ -263,7 +263,7 @@ def parse(text: str, constants=None) -> N.Expr:
         if isinstance(value, bool) or not isinstance(value, numbers.Real):
             raise ValueError(f"constant {name!r} must be a number, got {value!r}")
         try:
-            bound[name] = N.const(value)
+            bound[name] = N.named(name, value)
         except ValueError as err:
             raise ValueError(f"constant {name!r}: {err}") from None
     return _Parser(text, bound).parse()

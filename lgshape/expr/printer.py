@@ -17,8 +17,8 @@ _ATOM = 5   # precedence of constants, variables and calls: never parenthesised
 
 
 def _leaf(n) -> str:
-    if n.op == "const":
-        v = n.param
+    if n.op in ("const", "named"):          # a named constant prints its value
+        v = n.param if n.op == "const" else n.param[1]
         s = repr(int(v)) if v == int(v) and abs(v) < 1e15 else repr(v)
         return s if v >= 0 else f"({s})"
     return n.param  # a variable

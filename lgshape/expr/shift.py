@@ -66,7 +66,7 @@ def localize(f: Expr, centre) -> Expr:
         if n.op == "var" and n.param in ("x", "y", "z"):
             c = float(centre["xyz".index(n.param)])
             r = n if c == 0.0 else _plus(n, c)
-        elif n.op in ("const", "var"):
+        elif n.op in ("const", "named", "var"):
             r = n
         else:
             args = [out[id(a)] for a in n.args]
