@@ -230,7 +230,7 @@ def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
     Int32 = dr.int32_array_t(Float)
     UInt32 = dr.uint32_array_t(Float)
     Bool = dr.mask_t(Float)
-    B, nb, R = BRICK, g.R // BRICK, g.R
+    B, R = BRICK, g.R
     cell_min = dr.minimum(dr.minimum(g.cell[0], g.cell[1]), g.cell[2])
     dlen = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
     t_nudge = 1e-7 * cell_min / dr.select(dlen > 0, dlen, 1.0)   # fallback progress in t
@@ -246,12 +246,7 @@ def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
             # Past the grid's last face in the direction of travel (within
             # rounding of it): walk on in the boundary cells along that face.
             out.append(((p >= R) & (d[a] > 0)) | ((p < 0) & (d[a] < 0)))
-        b = UInt32(((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2))
-        v = dr.gather(Int32, g.top, b, inside)
-        brick = inside & (v > 0)
-        bit = UInt32((i[0] & 3) + B * ((i[1] & 3) + B * (i[2] & 3)))
-        word = dr.gather(UInt32, g.bricks, UInt32(2 * (v - 1)) + (bit >> 5), brick)
-        hit = brick & (((word >> (bit & 31)) & 1) == 1)
+        v, brick, bit, hit = _cell_lookup(g, i, inside)
         # Exit of the cell (occupied brick) or of the empty cube of bricks.
         k = dr.select(brick, 0, dr.maximum(-v, 1))
         t_out = Float(dr.inf)
@@ -286,14 +281,24 @@ def slot_at(g: DeviceGrid, p):
     Float = type(p[0])
     Int32 = dr.int32_array_t(Float)
     UInt32 = dr.uint32_array_t(Float)
-    R, nb = g.R, g.R // BRICK
+    R = g.R
     fl = [dr.floor(p[a] / g.cell[a]) for a in range(3)]
     inside = (fl[0] >= 0) & (fl[1] >= 0) & (fl[2] >= 0) & (fl[0] < R) & (fl[1] < R) & (fl[2] < R)
     i = [dr.clip(Int32(v), 0, R - 1) for v in fl]
+    v, _, bit, occupied = _cell_lookup(g, i, inside)
+    return dr.select(occupied, UInt32(v - 1) * 64 + bit, 0), occupied
+
+
+def _cell_lookup(g: DeviceGrid, i, active):
+    """The brick map at fine cell i (three Int32): (top entry v, occupied
+    brick, bit of the cell in its brick, occupied cell)."""
+    import drjit as dr
+    Int32 = dr.int32_array_t(type(i[0]))
+    UInt32 = dr.uint32_array_t(type(i[0]))
+    nb = g.R // BRICK
     b = UInt32(((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2))
-    v = dr.gather(Int32, g.top, b, inside)
-    brick = inside & (v > 0)
+    v = dr.gather(Int32, g.top, b, active)
+    brick = active & (v > 0)
     bit = UInt32((i[0] & 3) + BRICK * ((i[1] & 3) + BRICK * (i[2] & 3)))
     word = dr.gather(UInt32, g.bricks, UInt32(2 * (v - 1)) + (bit >> 5), brick)
-    occupied = brick & (((word >> (bit & 31)) & 1) == 1)
-    return dr.select(occupied, UInt32(v - 1) * 64 + bit, 0), occupied
+    return v, brick, bit, brick & (((word >> (bit & 31)) & 1) == 1)
