@@ -276,6 +276,16 @@ class LGSurface(mi.Mesh):
         if faces:
             params["faces"] = mi.UInt32([0, 1, 2])
 
+    def _shape_ptr(self):
+        """This shape as an opaque ShapePtr: its registry id is data, not a
+        literal of the kernel, so a process that registered its shapes in
+        another order reuses the kernels cached on disk."""
+        ptr = getattr(self, "_ptr", None)
+        if ptr is None:
+            ptr = self._ptr = mi.ShapePtr(self)
+            dr.make_opaque(ptr)
+        return ptr
+
     # ---- Upstream Python-shape interface -----------------------------------
 
     def bbox(self, prim_index=None) -> mi.ScalarBoundingBox3f:
@@ -293,7 +303,7 @@ class LGSurface(mi.Mesh):
         pi = dr.zeros(mi.PreliminaryIntersection3f)
         pi.t = t
         pi.prim_index = mi.UInt32(0)
-        pi.shape = dr.select(hit, mi.ShapePtr(self), dr.zeros(mi.ShapePtr))
+        pi.shape = dr.select(hit, self._shape_ptr(), dr.zeros(mi.ShapePtr))
         return pi
 
     def compute_surface_interaction(self, ray: mi.Ray3f, pi, ray_flags=None, active=True):
@@ -324,7 +334,7 @@ class LGSurface(mi.Mesh):
         si.wi = si.to_local(-dr.normalize(ray.d))
         si.time = ray.time
         si.wavelengths = ray.wavelengths
-        si.shape = dr.select(active, mi.ShapePtr(self), dr.zeros(mi.ShapePtr))
+        si.shape = dr.select(active, self._shape_ptr(), dr.zeros(mi.ShapePtr))
         si.prim_index = mi.UInt32(0)
         return dr.select(active, si, dr.zeros(mi.SurfaceInteraction3f))
 
