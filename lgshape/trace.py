@@ -190,11 +190,17 @@ class Surface:
     search and computed bounds (no hand-given L or G). ``tables=False``
     evaluates the whole expression everywhere instead (the unpruned form, for
     comparison: one fused kernel that grows with the expression).
+    ``named_centre``: the box centre enters f's local coordinates as named
+    constants, so the compiled kernels do not depend on where the box is
+    (for a box that moves with a scene parameter); by default it is folded
+    into f's constants where that is exact, which keeps geometry far from
+    the origin precise.
     """
 
     def __init__(self, expr, bbox=None, *, L: float | None = None, G: float | None = None,
                  depth: int | None = None, search: str | None = None,
-                 max_iterations: int = 4096, tables: bool = True):
+                 max_iterations: int = 4096, tables: bool = True,
+                 named_centre: bool = False):
         f, default_box = _as_expr(expr)
         bbox = bbox if bbox is not None else default_box
         if bbox is None:
@@ -230,7 +236,7 @@ class Surface:
         # The search evaluates f about the box centre (see the module notes).
         self.centre = 0.5 * (lo + hi)
         if self.tables is None:
-            self.local_expr = localize(f, self.centre)
+            self.local_expr = localize(f, self.centre, named_centre)
             self.g_expr, self.h_expr = ray_derivatives(self.local_expr)
             self.grid = gridmod.build(f, lo, hi, self.depth,
                                       mode="global" if L is not None else "local", L=L)

@@ -254,8 +254,14 @@ class LGSurface(mi.Mesh):
                 raise ValueError("lgsurface: an 'expr' needs a box: give 'bbox_min' and "
                                  "'bbox_max' (points, e.g. <point name=\"bbox_min\" "
                                  "value=\"-1.5, -1.5, -1.5\"/>)")
+        # A box that comes with f (a library surface) moves with its
+        # parameters: its centre enters as a named constant, so that a new
+        # value keeps the compiled kernels.
+        hints = dict(self._hints)
+        if self._bbox_given is None and self._source.values:
+            hints["named_centre"] = True
         try:
-            surface = lgshape.Surface(implicit, bbox=bbox, **self._hints)
+            surface = lgshape.Surface(implicit, bbox=bbox, **hints)
         except ValueError as err:
             raise ValueError(f"lgsurface: {err}") from None
         self.builds += 1

@@ -59,13 +59,19 @@ def _add(a: Expr, b: Expr, sign: float) -> Expr:
     return N.add(a, b) if sign > 0 else N.sub(a, b)
 
 
-def localize(f: Expr, centre) -> Expr:
-    """f(centre + u) as an expression in u (named x, y, z)."""
+def localize(f: Expr, centre, named_centre: bool = False) -> Expr:
+    """f(centre + u) as an expression in u (named x, y, z). With
+    ``named_centre``, the centre enters as named constants (never folded):
+    the expression's structure is then the same for any centre, at the cost
+    of the exact folding that keeps far-away geometry precise."""
     out = {}
     for n in topological([f]):
         if n.op == "var" and n.param in ("x", "y", "z"):
             c = float(centre["xyz".index(n.param)])
-            r = n if c == 0.0 else _plus(n, c)
+            if named_centre:
+                r = N.add(n, N.named("centre_" + n.param, c))
+            else:
+                r = n if c == 0.0 else _plus(n, c)
         elif n.op in ("const", "named", "var"):
             r = n
         else:
