@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .expr.node import Expr, const, maximum, minimum, sqrt, var
+from .expr.node import Expr, const, maximum, minimum, named, sqrt, var
 from .tables import Aggregate, TableForm, make_group, param
 
 X, Y, Z = var("x"), var("y"), var("z")
@@ -303,7 +303,8 @@ def blend(*parts, threshold: float = 0.5) -> TableForm:
             prm = np.column_stack([prm, p.weights])
         groups.append(make_group(_kernel(p.kind, weighted), _f32(prm)))
     radius = max(float(_kernel_params(p)[:, _radius_column(p.kind)].max()) for p in parts)
-    return _form(float(threshold) - var("A0"), "add", groups, 0.0, parts, radius)
+    return _form(named("threshold", float(threshold)) - var("A0"), "add", groups, 0.0, parts,
+                 radius)
 
 
 COMBINE = {"union": union, "smooth_union": smooth_union, "blend": blend}

@@ -45,7 +45,7 @@ import numpy as np
 from . import interval as iv
 from .arraymath import NUMPY
 from .expr import evaluate_interval
-from .expr.node import Expr, const, maximum, minimum, topological, var
+from .expr.node import Expr, const, maximum, minimum, named, topological, var
 from .expr import node as N
 
 #: Operands of one structure needed before an n-ary node becomes a table.
@@ -67,9 +67,9 @@ def combine_expr(op: str, k: float = 0.0) -> Expr:
         return maximum(A, B)
     if op == "add":
         return A + B
-    if op == "smin":
-        h = maximum(0.0, k - abs(A - B)) * (1.0 / k)
-        return minimum(A, B) - (0.25 * k) * h * h
+    if op == "smin":        # k as named constants: any k keeps the structure
+        h = maximum(0.0, named("k", k) - abs(A - B)) * named("k_inverse", 1.0 / k)
+        return minimum(A, B) - named("k_quarter", 0.25 * k) * h * h
     raise ValueError(f"unknown combine {op!r} (one of {', '.join(COMBINES)})")
 
 
