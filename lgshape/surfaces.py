@@ -147,8 +147,13 @@ def spikes(core: float = 0.5, height: float = 1.0, width: float = 0.01,
                 rho2 = ci**2 if rho2 is None else rho2 + ci**2
         term = exp(rho2 * (-1.0 / width**2))
         total = term if total is None else total + term
-    h = 1.05 * math.sqrt(core**2 + height)
+    h = 1.05 * math.sqrt(_number(core)**2 + _number(height))
     return Implicit("spikes", r2 - core**2 - height * total, _cube(h))
+
+
+def _number(v) -> float:
+    """A parameter's value (a number, or a named constant of a scene)."""
+    return v.param[1] if isinstance(v, Expr) and v.op == "named" else float(v)
 
 
 #: Library surfaces by name (for the XML plugin's ``surface`` parameter).

@@ -67,7 +67,8 @@ def test_kernels_equal_for_new_values():
 
 
 @pytest.mark.parametrize("surface, key, values", [("blobs", "radius", (0.8, 0.9)),
-                                                  ("torus", "R", (1.0, 1.5))])
+                                                  ("torus", "R", (1.0, 1.5)),
+                                                  ("spikes", "height", (1.0, 0.8))])
 def test_library_parameter_update_keeps_kernels(surface, key, values):
     """A library parameter that also moves the surface's box (the blobs'
     radius) keeps the compiled kernels: the box centre enters as named
