@@ -474,7 +474,6 @@ def _seg_exclusive_cummin(cell, v):
 
 def _prune_aggregate(agg, ivals, ncells):
     """Keep masks (per group) and the aggregate's interval per cell."""
-    cells = [c for c, _, _, _ in ivals]
     if agg.op in ("min", "smin"):
         best_hi = np.full(ncells, np.inf)
         for c, lo, hi, _ in ivals:
