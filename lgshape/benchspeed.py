@@ -376,7 +376,7 @@ def bench_surface(name, cfg: SpeedConfig, log, keep_mesh=False):
     for kind in KINDS:
         shadow = None
         if kind == "camera":
-            rays = bench.Rays(o_cam, d_cam)
+            rays = cam_rays = bench.Rays(o_cam, d_cam)
         elif kind == "incoherent":
             rays = bench.Rays(*incoherent_rays(spec, cfg.incoherent))
         else:
@@ -385,8 +385,6 @@ def bench_surface(name, cfg: SpeedConfig, log, keep_mesh=False):
                                         np.asarray(r.t64, np.float64), np.asarray(r.hit))
             shadow = ShadowRays(so, sd, st)
             rays = shadow.rays
-        if kind == "camera":
-            cam_rays = rays
         n = len(rays.o)
         row = {"surface": name, "kind": kind, "rays": n}
         methods = {"lgshape": lgshape_method(surf, rays, shadow, lg_build),

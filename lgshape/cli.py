@@ -284,10 +284,17 @@ def _write_bitmap(bitmap, path):
     bitmap.write(path)
 
 
-def _umask():
+def _read_umask():
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
+
+
+_UMASK = _read_umask()      # read once: setting it races with other threads
+
+
+def _umask():
+    return _UMASK
 
 
 def _check_output(out, ext):
@@ -405,10 +412,15 @@ def _clean_error(message):
 
 
 def pass_sizes(spp, pixels):
-    """The samples per pixel of each rendering pass: equal passes (within
-    1) of at most PASS_SAMPLES samples, a function of `spp` and the number of
-    pixels only. Pass i is rendered with seed i."""
+    """The samples per pixel of each rendering pass, a function of `spp` and
+    the number of pixels only; pass i is rendered with seed i. Passes of at
+    most PASS_SAMPLES samples, all of one size where a divisor of spp allows
+    it (the spp of a pass is part of the render kernel: a second size would
+    compile it a second time), else equal within 1."""
     per_pass = max(1, min(spp, PASS_SAMPLES // max(1, pixels)))
+    divisor = max(k for k in range(1, per_pass + 1) if spp % k == 0)
+    if 2 * divisor >= per_pass:
+        return [divisor] * (spp // divisor)
     count = -(-spp // per_pass)
     base, extra = divmod(spp, count)
     return [base + 1] * extra + [base] * (count - extra)

@@ -191,7 +191,8 @@ def render_frames(scene, frames, out="frame.exr", *, spp=None, variant=DEFAULT_V
     for path in (p for paths in files for p in paths):
         if os.path.isdir(path):
             raise CommandError(f"-o {out}: {path} is a folder")
-    _remove_stale_temporaries(files)
+    _remove_stale_temporaries([p for paths in files for p in paths]
+                              + [os.path.splitext(out)[0] + ".mp4"])
 
     done = [all(os.path.isfile(p) for p in paths) for paths in files]
     todo = [k for k in range(len(files)) if not done[k]]
@@ -327,15 +328,18 @@ def render_task(job, defines):
     return image
 
 
+_TEMPORARY = re.compile(r"\.(?P<base>.+)\.\w{8}\.tmp\.(?:exr|png|mp4)")
+
+
 def _remove_stale_temporaries(files):
     """Remove the temporary files (``.NAME.XXXXXXXX.tmp.EXT``) that a killed
-    run left for these frames."""
+    run left for these files (frames, and the video)."""
     names = {}
-    for path in (p for paths in files for p in paths):
+    for path in files:
         folder, base = os.path.split(os.path.abspath(path))
         names.setdefault(folder, set()).add(base)
+    pattern = _TEMPORARY
     for folder, bases in names.items():
-        pattern = re.compile(r"\.(?P<base>.+)\.\w{8}\.tmp\.(?:exr|png|mp4)")
         with contextlib.suppress(OSError):
             for entry in os.listdir(folder):
                 m = pattern.fullmatch(entry)

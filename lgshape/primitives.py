@@ -287,7 +287,8 @@ def smooth_union(*parts, k: float) -> TableForm:
     if not (np.isfinite(k) and k > 0):
         raise ValueError(f"smooth_union: k must be positive and finite, got {k}")
     groups = [make_group(_distance(p.kind), _f32(_distance_params(p))) for p in parts]
-    return _form(var("A0"), "smin", groups, float(k), parts, 0.0)
+    # the smooth minimum lies up to k / 4 below the union: the box reaches that far
+    return _form(var("A0"), "smin", groups, float(k), parts, 0.25 * float(k))
 
 
 def blend(*parts, threshold: float = 0.5) -> TableForm:
@@ -298,6 +299,10 @@ def blend(*parts, threshold: float = 0.5) -> TableForm:
     groups = []
     for p in parts:
         prm = _kernel_params(p)
+        if np.any(prm[:, _radius_column(p.kind)] <= 0):
+            what = "boxes in a blend need rounding > 0 (their radius of influence)" \
+                if p.kind == "box" else "radii must be positive"
+            raise ValueError(f"blend: {what}")
         weighted = p.weights is not None
         if weighted:
             prm = np.column_stack([prm, p.weights])

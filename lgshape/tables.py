@@ -474,7 +474,7 @@ def _seg_exclusive_cummin(cell, v):
 
 def _prune_aggregate(agg, ivals, ncells):
     """Keep masks (per group) and the aggregate's interval per cell."""
-    if agg.op in ("min", "smin"):
+    if agg.op == "min":
         best_hi = np.full(ncells, np.inf)
         for c, lo, hi, _ in ivals:
             best_hi = np.minimum(best_hi, _seg_reduce(np.minimum, c, hi, ncells, np.inf))
@@ -691,7 +691,8 @@ class DeviceTables:
 
     def all_rows(self, n):
         import drjit as dr
-        return self.ranges(dr.full(dr.uint32_array_t(self.Float), self.n_slots, n), True)
+        # opaque: the slot count (the number of bricks) is data, not kernel code
+        return self.ranges(dr.opaque(dr.uint32_array_t(self.Float), self.n_slots, n), True)
 
     # -- point values -----------------------------------------------------------
     def point(self, env, err, rng, m64, directions=None):

@@ -81,8 +81,8 @@ from .expr import (Expr, evaluate, evaluate_with_error, gradient, hessian, parse
                    ray_derivatives)
 from .expr.shift import localize
 from .surfaces import Implicit
-from .tables import DeviceTables, TableForm, evaluate_points, find_tables
 from . import tables as tablemod
+from .tables import DeviceTables, TableForm, evaluate_points, find_tables
 
 MAX_LEVEL = 22          # bisection depth bound inside one cell segment
 
@@ -219,7 +219,11 @@ class Surface:
         self.search = search
         if not tables and isinstance(f, TableForm):
             f = f.expr()
-        self.tables = f if isinstance(f, TableForm) else (find_tables(f) if tables else None)
+        # a table found in a plain expression is an optimisation: not with a
+        # hand-given L or G or another search mode, which need the fused form
+        fused_only = L is not None or G is not None or search != "interval"
+        self.tables = f if isinstance(f, TableForm) else \
+            (find_tables(f) if tables and not fused_only else None)
         self._expr = None if isinstance(f, TableForm) else f
         self.depth = _check_int("depth", _default_depth(self.tables) if depth is None else depth,
                                 2, 10)

@@ -106,10 +106,9 @@ class LGAOVIntegrator(mi.SamplingIntegrator):
         L, valid, nested_aovs = self.nested.sample(scene, sampler, ray, medium, active)
         return L, valid, values + list(nested_aovs)
 
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        """Mitsuba's render, with the infinite emitters given the scene's
-        current bounds first (:func:`.common.refresh_infinite_emitters`)."""
-        return common.render(self, scene, sensor, seed, spp, develop, evaluate)
+    # Mitsuba's render, with the infinite emitters given the scene's current
+    # bounds first (:func:`.common.refresh_infinite_emitters`).
+    render = common.render
 
     def aov_names(self):
         names = [name + suffix for name, kind in self.aovs for suffix in AOV_TYPES[kind]]

@@ -115,10 +115,9 @@ class LGDirectIntegrator(mi.SamplingIntegrator):
 
         return L, valid_ray, []
 
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        """Mitsuba's render, with the infinite emitters given the scene's
-        current bounds first (:func:`.common.refresh_infinite_emitters`)."""
-        return common.render(self, scene, sensor, seed, spp, develop, evaluate)
+    # Mitsuba's render, with the infinite emitters given the scene's current
+    # bounds first (:func:`.common.refresh_infinite_emitters`).
+    render = common.render
 
     def aov_names(self):
         return []

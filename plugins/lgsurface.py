@@ -226,7 +226,7 @@ class LGSurface(mi.Mesh):
             surface, source = self._build(values) if new_f else (None, None)
             if new_world:
                 _invert(matrix)                          # checks before changing anything
-        except ValueError:
+        except Exception:
             for k in names:                              # put the values in use back
                 mi.set_property(self._params[k], self._values[k])
             mi.set_property(self._to_world, mi.ScalarTransform4f(self.matrix.astype(np.float32)))
@@ -246,6 +246,11 @@ class LGSurface(mi.Mesh):
 
     def _build(self, values):
         """The Surface of f for these parameter values, and its description."""
+        given = [k for k in ("L", "G") if self._hints.get(k) is not None]
+        if given and values != self._source.values:
+            raise ValueError(f"lgsurface: a hand-given {' and '.join(given)} bounds f for the "
+                             "loaded parameters only: an update of f's parameters is refused "
+                             f"(leave {' and '.join(given)} out to animate f)")
         implicit = self._source.build(values)
         bbox = self._bbox_given
         if bbox is None:

@@ -88,7 +88,9 @@ def test_cell_rows_are_exact(name):
     cr = tables.build(tf, lo, hi, depth)
     size = (hi - lo) / 2 ** depth
     k = rng.integers(0, len(cr.cells), 6000)
-    p = lo + (cr.cells[k] + rng.uniform(0, 1, (len(k), 3))) * size
+    # over the inflated cell: the search evaluates a cell's rows that far out
+    infl = tables.ROW_INFLATE
+    p = lo + (cr.cells[k] + rng.uniform(-infl, 1 + infl, (len(k), 3))) * size
     full = tables.evaluate_points(tf, p)
     # f over each point's cell rows only, folded in the kernel's order
     agg = tf.aggregates[0]
@@ -315,6 +317,7 @@ def test_kernels_reused_across_row_counts():
         dr.kernel_history()                       # clear
         res = surf.trace(o, d)
         dr.eval(res.t, res.t64, res.hit, res.evals, res.iterations, res.capped, res.unresolved)
+        dr.eval(surf.gradient(o))                  # normals: the cell lookup, all rows
         hist = dr.kernel_history()
         dr.set_flag(dr.JitFlag.KernelHistory, False)
         hashes.append(sorted(k["hash"] for k in hist if k.get("type") == dr.KernelType.JIT))
@@ -346,6 +349,40 @@ def test_primitives_file(tmp_path):
         P.smooth_union(P.spheres(c, r), k=0)
     with pytest.raises(ValueError, match="interval"):
         lgshape.Surface(ref, L=10.0)
+    with pytest.raises(ValueError, match="boxes in a blend need rounding > 0"):
+        P.blend(P.boxes(c[:2], 0.1))
+
+
+def test_tables_found_only_where_they_apply():
+    """A written-out union with a hand-given search mode keeps the fused
+    form (as before tables existed) and traces the same analytic roots."""
+    rng = np.random.default_rng(13)
+    c, r = random_spheres(rng, 20)
+    text = "min(" + ", ".join(f"sqrt((x - {float(a)!r})^2 + (y - {float(b)!r})^2 + "
+                              f"(z - {float(e)!r})^2) - {float(s)!r}"
+                              for (a, b, e), s in zip(c, r)) + ")"
+    surf = lgshape.Surface(text, bbox=((-1.3,) * 3, (1.3,) * 3), search="taylor")
+    assert surf.tables is None
+    o, d = rays_at(rng, surf, 300)
+    check_first_roots(surf, numpy_F(P.union(P.spheres(c, r))), o, d, union_roots(o, d, c, r))
+
+
+def test_smooth_union_box_holds_the_surface():
+    """The smooth union lies up to k / 4 below the union: its box is that
+    much larger, so f > 0 on the box (oracle: f over every row, float64)."""
+    tf = P.smooth_union(P.spheres([[0, 0, 0], [0.15, 0, 0]], 0.1), k=0.8)
+    lo, hi = (np.array(v) for v in tf.bbox)
+    g = np.linspace(0, 1, 9)
+    faces = []
+    for axis in range(3):
+        for side in (lo, hi):
+            u, v = np.meshgrid(g, g)
+            pts = lo + (hi - lo) * np.stack([u.ravel(), v.ravel(), u.ravel()], 1)
+            pts[:, axis] = side[axis]
+            pts[:, (axis + 1) % 3] = lo[(axis + 1) % 3] + (hi - lo)[(axis + 1) % 3] * u.ravel()
+            pts[:, (axis + 2) % 3] = lo[(axis + 2) % 3] + (hi - lo)[(axis + 2) % 3] * v.ravel()
+            faces.append(pts)
+    assert np.all(tables.evaluate_points(tf, np.concatenate(faces)) > 0)
 
 
 def test_builder_distances_match_closed_forms():

@@ -89,7 +89,6 @@ def test01_parser_named_constants():
         [("radius", 18), ("k", 29)]
     # (named constants stay leaves of their own, never folded: the same
     # function, compared by value at sample points)
-    import numpy as np
     from lgshape.arraymath import NUMPY
     from lgshape.expr import evaluate
     p = np.random.default_rng(0).uniform(-2, 2, (100, 3))
@@ -338,3 +337,18 @@ def test12_infinite_emitters_follow_new_bounds():
     params.update()
     fresh = render(scene(high))
     assert np.array_equal(render(moved), fresh)
+
+
+def test_hand_given_L_refuses_updates_of_f():
+    """A hand-given L bounds f for the loaded parameters only: an update of
+    f's parameters is refused (it could break the guarantee) and the loaded
+    value is put back; to_world still updates."""
+    sc = mi.load_dict({"type": "scene", "s": {"type": "lgsurface", "surface": "torus",
+                                              "L": 100.0}})
+    p = mi.traverse(sc)
+    p["s.R"] = 1.2
+    with pytest.raises(Exception, match="hand-given L bounds f for the loaded parameters"):
+        p.update()
+    assert float(p["s.R"][0]) == 1.0
+    p["s.to_world"] = mi.ScalarTransform4f().translate([0.5, 0, 0])
+    p.update()

@@ -95,6 +95,8 @@ def test02_quick_run_render_and_latency(quick):
     assert k["cold"]["kernels_compiled"] > 0            # an empty cache compiles
     assert k["cold"]["cache_files"] > 0                 # ... and fills $HOME/.drjit
     assert k["warm_again"]["cache_files"] >= k["cold"]["cache_files"]
+    # the oracle of kernel reuse: Dr.Jit's kernel history of the warm runs
+    assert k["warm"]["kernels_compiled"] == 0 and k["warm_again"]["kernels_compiled"] == 0
 
 
 def test03_shadow_rays_analytic_sphere(rng):
