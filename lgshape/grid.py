@@ -225,23 +225,43 @@ def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
     point lies past the grid's last face on an axis (the ray leaves through
     it within rounding), that face is ignored and the walk goes on through
     the boundary cells along it, so no cell the ray grazes is skipped."""
-    import drjit as dr
-    Float = type(t)
-    Int32 = dr.int32_array_t(Float)
-    UInt32 = dr.uint32_array_t(Float)
-    Bool = dr.mask_t(Float)
-    B, R = BRICK, g.R
-    cell_min = dr.minimum(dr.minimum(g.cell[0], g.cell[1]), g.cell[2])
-    dlen = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-    t_nudge = 1e-7 * cell_min / dr.select(dlen > 0, dlen, 1.0)   # fallback progress in t
-    shift = [dr.select(d[a] > 0, nudge_cells(R), dr.select(d[a] < 0, -nudge_cells(R), 0.0))
-             for a in range(3)]
-    max_steps = 4 * R + 16
+    return Walker(g, o, d, t_end).next(t, active)
 
-    def body(t, active, found, t_exit, steps, slot):
-        i, out, inside = [], [], Bool(active) & (t <= t_end)
+
+class Walker:
+    """The DDA of :func:`next_occupied` for one set of rays, with the
+    per-ray constants computed once (a search calls :meth:`next` once per
+    cell, inside its own loop)."""
+
+    def __init__(self, g: DeviceGrid, o, d, t_end):
+        import drjit as dr
+        self.g, self.o, self.d, self.t_end = g, o, d, t_end
+        R = g.R
+        cell_min = dr.minimum(dr.minimum(g.cell[0], g.cell[1]), g.cell[2])
+        dlen = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        self.t_nudge = 1e-7 * cell_min / dr.select(dlen > 0, dlen, 1.0)  # fallback progress
+        self.shift = [dr.select(d[a] > 0, nudge_cells(R),
+                                dr.select(d[a] < 0, -nudge_cells(R), 0.0)) for a in range(3)]
+        # reciprocals once per ray: a step multiplies (their rounding, a few
+        # ulps of a position, stays far below the nudge)
+        self.inv_cell = [1.0 / g.cell[a] for a in range(3)]
+        self.inv_d = [dr.select(d[a] == 0, 0.0, 1.0 / d[a]) for a in range(3)]
+        self.max_steps = 4 * R + 16
+
+    def step(self, t, active):
+        """One step of the DDA from t on the lanes ``active``: (hit, t_out,
+        slot, inside). ``inside``: t had not passed t_end; ``hit``: the cell
+        at t is occupied (its slot in the brick map); ``t_out``: the exit of
+        that cell, or of the cube of empty bricks around it."""
+        import drjit as dr
+        g, o, d = self.g, self.o, self.d
+        Float = type(t)
+        Int32 = dr.int32_array_t(Float)
+        UInt32 = dr.uint32_array_t(Float)
+        B, R = BRICK, g.R
+        i, out, inside = [], [], dr.mask_t(Float)(active) & (t <= self.t_end)
         for a in range(3):
-            p = (o[a] + t * d[a]) / g.cell[a] + shift[a]
+            p = dr.fma(t, d[a], o[a]) * self.inv_cell[a] + self.shift[a]
             i.append(dr.clip(Int32(dr.floor(p)), 0, R - 1))
             # Past the grid's last face in the direction of travel (within
             # rounding of it): walk on in the boundary cells along that face.
@@ -254,24 +274,37 @@ def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
             lo_c = dr.select(brick, i[a], ((i[a] >> 2) - (k - 1)) * B)
             hi_c = dr.select(brick, i[a] + 1, ((i[a] >> 2) + k) * B)
             face = Float(dr.select(d[a] > 0, hi_c, lo_c)) * g.cell[a]
-            t_a = dr.select((d[a] == 0) | out[a], dr.inf, (face - o[a]) / d[a])
+            t_a = dr.select((d[a] == 0) | out[a], dr.inf, (face - o[a]) * self.inv_d[a])
             t_out = dr.minimum(t_out, t_a)
         # rounding must never stall a ray
-        t_out = dr.maximum(t_out, t + dr.maximum(t_nudge, dr.abs(t) * 2.0**-22))
-        found = found | hit
-        t_exit = dr.select(hit, t_out, t_exit)
-        slot = dr.select(hit, UInt32(v - 1) * 64 + bit, slot)
-        t = dr.select(inside & ~hit, t_out, t)
-        steps = steps + 1
-        return t, inside & ~hit & (steps < max_steps), found, t_exit, steps, slot
+        t_out = dr.maximum(t_out, t + dr.maximum(self.t_nudge, dr.abs(t) * 2.0**-22))
+        return hit, t_out, UInt32(v - 1) * 64 + bit, inside
 
-    n = dr.width(t)
-    t_in, walking, found, t_exit, steps, slot = dr.while_loop(
-        state=(Float(t), Bool(active), dr.zeros(Bool, n), dr.zeros(Float, n), dr.zeros(Int32, n),
-               dr.zeros(UInt32, n)),
-        cond=lambda t, active, *_: active, body=body, label="lgshape_dda")
-    stuck = ~found & (steps >= max_steps) & (t_in <= t_end)
-    return found, t_in, t_exit, stuck, slot
+    def next(self, t, active):
+        """(found, t_enter, t_exit, stuck, slot), see :func:`next_occupied`."""
+        import drjit as dr
+        Float = type(t)
+        Int32 = dr.int32_array_t(Float)
+        UInt32 = dr.uint32_array_t(Float)
+        Bool = dr.mask_t(Float)
+        max_steps = self.max_steps
+
+        def body(t, active, found, t_exit, steps, slot):
+            hit, t_out, cell_slot, inside = self.step(t, active)
+            found = found | hit
+            t_exit = dr.select(hit, t_out, t_exit)
+            slot = dr.select(hit, cell_slot, slot)
+            t = dr.select(inside & ~hit, t_out, t)
+            steps = steps + 1
+            return t, inside & ~hit & (steps < max_steps), found, t_exit, steps, slot
+
+        n = dr.width(t)
+        t_in, walking, found, t_exit, steps, slot = dr.while_loop(
+            state=(Float(t), Bool(active), dr.zeros(Bool, n), dr.zeros(Float, n),
+                   dr.zeros(Int32, n), dr.zeros(UInt32, n)),
+            cond=lambda t, active, *_: active, body=body, label="lgshape_dda")
+        stuck = ~found & (steps >= max_steps) & (t_in <= self.t_end)
+        return found, t_in, t_exit, stuck, slot
 
 
 def slot_at(g: DeviceGrid, p):

@@ -71,7 +71,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -497,24 +497,244 @@ def _empty_result(Float):
 # The search
 # ---------------------------------------------------------------------------
 
-def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
-    import drjit as dr
-    Float = type(o.x)
-    UInt32 = dr.uint32_array_t(Float)
-    Int32 = dr.int32_array_t(Float)
-    Bool = dr.mask_t(Float)
-    K = surf._kernel_data(Float)
-    m, m64, dev = K.m, K.m64, K.grid
-    Float64 = m64.Float
-    n = max(dr.width(o), dr.width(d))
-    tabled = K.tables is not None
-    if not tabled:
-        f, ge, he = surf.local_expr, surf.g_expr, surf.h_expr
-    search_mode = surf.search
-    if search_mode == "global":
-        G_glob = Float64(dr.opaque(Float, surf.global_G()) * dr.squared_norm(d))
+# The search, in phases (each a function of its own):
+#
+#   walk    (_walk) the DDA to the next occupied cell, a nested loop of its
+#           own (lgshape.grid.Walker);
+#   search  (_step) one evaluation per iteration: the interval test of the
+#           whole cell first (most cells end there: excluded, or monotone
+#           with or without a sign change), then the stackless bisection of
+#           the cells it leaves open; ends with a bracket, a proven root or
+#           none in the cell (walk on);
+#   refine  (_refine) safeguarded Newton in the bracket, in a loop of its
+#           own after the search, on the rays that found one.
+#
+# _locate runs walk and search in one symbolic loop: lanes of one SIMD packet
+# walking and searching share its iterations (measured: faster than a loop
+# over cells that waits for the whole packet in each phase). Refinement needs
+# none of the search's state, so it runs after it with five variables (Dr.Jit
+# merges every state variable of a symbolic loop with a select per iteration).
 
-    # ---- Rays: checked, clipped in float64, moved to the box entry ----
+# Outcomes of a ray's search (_Lane.outcome; WALKING while it goes on).
+WALKING, NONE, BRACKET, HIT, CAPPED = range(5)
+
+
+@dataclass
+class _Rays:
+    """The per-ray constants of one search: the ray moved to its box entry
+    in the box's local coordinates, u(s) = e + s d for s in [0, span], and
+    the widths that scale with the ray's speed."""
+    e64: list            # entry point, float64
+    d64: list            # direction, float64
+    e32: list            # the same in float32 (intervals)
+    d32: list
+    g_org: list          # entry point relative to the grid's lower corner
+    span: object         # Float: length of the segment in the box, in s
+    margin: object       # Float: overlap of neighbouring cell segments
+    r_min: object        # Float: minimum half width of a search interval
+    tol: object          # Float64: refinement tolerance in s
+
+
+class _Evaluator:
+    """F, g and their bounds along the rays for one Surface and backend:
+    point values in float64 with error bounds, float32 intervals over
+    segments, and the Kalra-Barr test of one interval (:meth:`test`)."""
+
+    def __init__(self, surf, K, rays: _Rays, n):
+        import drjit as dr
+        self.dr = dr
+        self.K, self.rays, self.mode = K, rays, surf.search
+        self.tabled = K.tables is not None
+        if not self.tabled:
+            self.f, self.ge, self.he = surf.local_expr, surf.g_expr, surf.h_expr
+        Float = K.m.Float
+        if self.mode == "global":
+            d = rays.d32
+            self.G_glob = K.m64.Float(dr.opaque(Float, surf.global_G())
+                                      * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
+        self.dirs = {"dx": rays.d64[0], "dy": rays.d64[1], "dz": rays.d64[2]}
+
+    def point(self, s, rng):
+        """F and g at s in float64 with error bounds of F (and of g where the
+        search mode uses g's value in a proof)."""
+        dr, K, R = self.dr, self.K, self.rays
+        m64 = K.m64
+        s = m64.Float(s)
+        env, err = dict(self.dirs), {}
+        for i, v in enumerate("xyz"):
+            sd = s * R.d64[i]
+            env[v] = R.e64[i] + sd
+            err[v] = m64.u * (dr.abs(sd) + dr.abs(env[v]))
+        if self.tabled:
+            F, eF, (g,) = K.tables.point(env, err, rng, m64)
+            return F, eF, g, None
+        if self.mode == "interval":
+            # g's point value only steers Newton: no error bound needed.
+            F, eF = evaluate_with_error(self.f, env, err, m64)
+            return F, eF, evaluate(self.ge, env, m64), None
+        (F, eF), (g, eg) = evaluate_with_error([self.f, self.ge], env, err, m64)
+        return F, eF, g, eg
+
+    def _bounds(self, lo, hi, rng, need):
+        """Float32 intervals over the segment e + [lo, hi] d, where ``need``:
+        (S_lo, S_hi) of g (of h in the Taylor mode), and (Fi_lo, Fi_hi) of F
+        itself for a table form (both come from one pass over the rows)."""
+        dr, K, R = self.dr, self.K, self.rays
+        m, Float = K.m, K.m.Float
+        if self.tabled:
+            return dr.if_stmt(
+                args=(lo, hi, rng), cond=need,
+                true_fn=lambda lo, hi, rng: K.tables.segment(R.e32, R.d32, lo, hi, rng, m),
+                false_fn=lambda lo, hi, rng: (Float(0), Float(0), Float(-dr.inf), Float(dr.inf)),
+                label="lgshape_bounds")
+        e = self.ge if self.mode == "interval" else self.he
+
+        def true_fn(lo, hi):
+            Si = bounds.segment_interval(e, R.e32, R.d32, lo, hi, m)
+            return Si.lo, Si.hi
+        return dr.if_stmt(args=(lo, hi), cond=need, true_fn=true_fn,
+                          false_fn=lambda lo, hi: (Float(0), Float(0)), label="lgshape_bounds")
+
+    def _natural(self, lo, hi, need):
+        """Float32 interval of F over the segment, where ``need``."""
+        dr, K, R = self.dr, self.K, self.rays
+        Float = K.m.Float
+
+        def true_fn(lo, hi):
+            Fi = bounds.segment_interval(self.f, R.e32, R.d32, lo, hi, K.m)
+            return Fi.lo, Fi.hi
+        return dr.if_stmt(args=(lo, hi), cond=need, true_fn=true_fn,
+                          false_fn=lambda lo, hi: (Float(-dr.inf), Float(dr.inf)),
+                          label="lgshape_natural")
+
+    def test(self, lo, hi, rng, active, at=None):
+        """The Kalra-Barr test of the ray interval [lo, hi] (float32 ends)
+        on the lanes ``active``: F and g at the middle (``at``: the point
+        values there, when the caller has them), bounds over the interval.
+        See :class:`_Test`."""
+        dr = self.dr
+        Float64 = self.K.m64.Float
+        # [tm - r, tm + r] must cover [lo, hi]: the midpoint in float64
+        # (exact), the half width rounded outward.
+        tm = 0.5 * (Float64(lo) + Float64(hi))
+        r = self.K.m.Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22)
+        F, eF, g, eg = self.point(tm, rng) if at is None else at
+        local = active & (self.mode != "global")
+        S_lo, S_hi, *Fn = (Float64(v) for v in self._bounds(lo, hi, rng, local))
+        defined = dr.isfinite(F) & dr.isfinite(eF)
+        Fm_lo, Fm_hi = F - eF, F + eF
+        r64 = Float64(r)
+        if self.mode == "interval":
+            # Mean-value form: F(t) in F(t_m) + [g] [-r, r].
+            g_lo, g_hi = S_lo, S_hi
+            mv_lo = _down(Fm_lo + dr.minimum(r64 * g_lo, -r64 * g_hi))
+            mv_hi = _up(Fm_hi + dr.maximum(r64 * g_hi, -r64 * g_lo))
+            Fa = (_down(Fm_lo - r64 * g_hi), _up(Fm_hi - r64 * g_lo))
+            Fb = (_down(Fm_lo + r64 * g_lo), _up(Fm_hi + r64 * g_hi))
+        else:
+            # Second-order Taylor form with G >= |h|: the seed's |g(t_m)| > G r.
+            h_lo, h_hi = (S_lo, S_hi) if self.mode == "taylor" else (-self.G_glob, self.G_glob)
+            G = dr.maximum(dr.abs(h_lo), dr.abs(h_hi))
+            q2 = 0.5 * r64 * r64
+            gm_lo, gm_hi = g - eg, g + eg
+            ag = dr.maximum(dr.abs(gm_lo), dr.abs(gm_hi)) * r64
+            g_lo, g_hi = _down(gm_lo - G * r64), _up(gm_hi + G * r64)
+            mv_lo = _down(Fm_lo - ag + dr.minimum(h_lo, 0) * q2)
+            mv_hi = _up(Fm_hi + ag + dr.maximum(h_hi, 0) * q2)
+            Fa = (_down(Fm_lo - gm_hi * r64 + h_lo * q2), _up(Fm_hi - gm_lo * r64 + h_hi * q2))
+            Fb = (_down(Fm_lo + gm_lo * r64 + h_lo * q2), _up(Fm_hi + gm_hi * r64 + h_hi * q2))
+        # F over the interval: the mean-value form where it is finite (F(t_m)
+        # defined, its derivative bounded), intersected with the natural
+        # interval form (a table form computes it with g's bounds; else it is
+        # evaluated only where the mean-value form fails: undefined points,
+        # domain edges, poles, where it also tells whether F is bounded).
+        mv_ok = defined & dr.isfinite(mv_lo) & dr.isfinite(mv_hi)
+        need_fi = active & ~mv_ok
+        Fi_lo, Fi_hi = Fn if self.tabled else (Float64(v) for v in self._natural(lo, hi, need_fi))
+        evals = 1 + dr.select(local, 1, 0) + (0 if self.tabled else dr.select(need_fi, 1, 0))
+        F_lo = dr.select(mv_ok, dr.maximum(mv_lo, Fi_lo), Fi_lo)
+        F_hi = dr.select(mv_ok, dr.minimum(mv_hi, Fi_hi), Fi_hi)
+        F_lo = dr.select(dr.isnan(F_lo), -dr.inf, F_lo)
+        F_hi = dr.select(dr.isnan(F_hi), dr.inf, F_hi)
+        excluded = (F_lo > 0) | (F_hi < 0)
+        # Monotone: g keeps one sign, with finite bounds (an unbounded g may
+        # hide a pole or the edge of f's domain).
+        monotone = defined & ((g_lo > 0) | (g_hi < 0)) & dr.isfinite(g_lo) & dr.isfinite(g_hi)
+        s_a, s_b, s_m = _sign_of(*Fa), _sign_of(*Fb), _sign_of(Fm_lo, Fm_hi)
+        left = monotone & (s_m != 0) & (s_a == -s_m)
+        right = monotone & ~left & (s_m != 0) & (s_b == -s_m)
+        empty = active & (excluded | (monotone & (s_m != 0) & (s_a == s_m) & (s_b == s_m)))
+        bracket = active & ~empty & (left | right)
+        return _Test(
+            tm=tm, r=r, F=F, eF=eF, g=g, s_m=s_m, empty=empty, bracket=bracket,
+            open=active & ~empty & ~bracket,
+            # the bracket: the left or right half, its left end's sign
+            b_lo=dr.select(left, Float64(lo), tm), b_hi=dr.select(left, tm, Float64(hi)),
+            b_sign=dr.select(left, s_a, s_m), g_min=dr.minimum(dr.abs(g_lo), dr.abs(g_hi)),
+            defined=defined,
+            # F bounded over the interval: no pole inside it
+            bounded=mv_ok | (dr.isfinite(Fi_lo) & dr.isfinite(Fi_hi)),
+            evals=evals)
+
+
+@dataclass
+class _Test:
+    """The outcome of one interval test (Dr.Jit arrays per lane)."""
+    tm: object           # Float64: the middle
+    r: object            # Float: half width (rounded outward)
+    F: object            # Float64: F(tm), its error bound eF, g(tm)
+    eF: object
+    g: object
+    s_m: object          # Int32: sign of F(tm) outside its error bound (0: unknown)
+    empty: object        # Bool: no root in the interval
+    bracket: object      # Bool: exactly one root, in [b_lo, b_hi]
+    open: object         # Bool: undecided
+    b_lo: object
+    b_hi: object
+    b_sign: object       # Int32: sign of F at b_lo
+    g_min: object        # Float64: min |g| over the interval (bracket lanes)
+    defined: object      # Bool: F(tm) defined
+    bounded: object      # Bool: F bounded over the interval
+    evals: object        # point plus interval evaluations made
+
+
+def _sign_of(lo, hi):
+    """+1 / -1 where [lo, hi] has one strict sign, else 0 (NaN: 0)."""
+    import drjit as dr
+    return dr.select(lo > 0, 1, dr.select(hi < 0, -1, 0))
+
+
+def _sign_known(F, eF):
+    """Sign of a point value outside its error bound; 0 where it cannot be
+    told from 0; 2 where F is undefined (NaN or infinite) or its error bound
+    overflows (the value cannot be trusted)."""
+    import drjit as dr
+    return dr.select(dr.isfinite(F) & dr.isfinite(eF), _sign_of(F - eF, F + eF), 2)
+
+
+def _down(v):
+    """One float64 rounding of a sum, covered outward."""
+    import drjit as dr
+    return v - (dr.abs(v) * 2.0**-51 + 2.0**-1020)
+
+
+def _up(v):
+    import drjit as dr
+    return v + (dr.abs(v) * 2.0**-51 + 2.0**-1020)
+
+
+def _newton(t, F, g, t_lo, t_hi):
+    import drjit as dr
+    tn = t - F / g
+    return dr.select((tn > t_lo) & (tn < t_hi), tn, 0.5 * (t_lo + t_hi))
+
+
+def _prepare_rays(K, o, d, t_min, t_max, active, n):
+    """Checked rays, clipped to the box in float64 and moved to its entry:
+    (active, t_start, _Rays)."""
+    import drjit as dr
+    Float, Float64 = K.m.Float, K.m64.Float
+    Bool = dr.mask_t(Float)
     o64 = [Float64(o[i]) for i in range(3)]
     d64 = [Float64(d[i]) for i in range(3)]
     ok_dir = dr.isfinite(d64[0]) & dr.isfinite(d64[1]) & dr.isfinite(d64[2]) \
@@ -524,312 +744,285 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
     active = (Bool(active) | dr.zeros(Bool, n)) & ok_dir & (t_start <= t_end) \
         & dr.isfinite(t_start) & dr.isfinite(t_end)
     t_start = dr.select(active, t_start, 0.0)
-    span = Float(dr.select(active, t_end - t_start, 0.0))     # s in [0, span]
-    # The ray in local coordinates, from its box entry: u(s) = e + s d.
-    e64 = [o64[i] - K.centre[i] + t_start * d64[i] for i in range(3)]
-    e64 = [dr.select(active, e64[i], 0.0) for i in range(3)]
-    e32 = [Float(v) for v in e64]
-    g_org = [Float(e64[i] + K.grid_origin[i]) for i in range(3)]   # for the grid walk
+    e64 = [dr.select(active, o64[i] - K.centre[i] + t_start * d64[i], 0.0) for i in range(3)]
     d32 = [Float(dr.select(active, d[i], 0.0)) for i in range(3)]
-
     dlen = dr.sqrt(d32[0] * d32[0] + d32[1] * d32[1] + d32[2] * d32[2])
     dlen = dr.select(dlen > 0, dlen, 1.0)
-    cell = dr.minimum(dr.minimum(dev.cell[0], dev.cell[1]), dev.cell[2])
-    margin = 1e-3 * cell / dlen          # neighbouring segments overlap by this much
-    r_min = 1e-6 * K.diag / dlen         # minimum half width of a search interval
-    tol = Float64(1e-6 * K.diag / dlen)  # refinement tolerance in t
-    U = m64.u
-    dirs = {"dx": d64[0], "dy": d64[1], "dz": d64[2]}
+    cell = dr.minimum(dr.minimum(K.grid.cell[0], K.grid.cell[1]), K.grid.cell[2])
+    rays = _Rays(
+        e64=e64, d64=d64, e32=[Float(v) for v in e64], d32=d32,
+        g_org=[Float(e64[i] + K.grid_origin[i]) for i in range(3)],
+        span=Float(dr.select(active, t_end - t_start, 0.0)),
+        margin=1e-3 * cell / dlen,
+        r_min=1e-6 * K.diag / dlen,
+        tol=Float64(1e-6 * K.diag / dlen))
+    return active, t_start, rays
 
-    def point_values(s, rng):
-        """F and g at s in float64 with their error bounds (a table form:
-        over the rows of the cell's ranges rng)."""
-        s = Float64(s)
-        env, err = dict(dirs), {}
-        for i, v in enumerate("xyz"):
-            sd = s * d64[i]
-            env[v] = e64[i] + sd
-            err[v] = U * (dr.abs(sd) + dr.abs(env[v]))
-        if tabled:
-            F, eF, (g,) = K.tables.point(env, err, rng, m64)
-            return F, eF, g, None
-        if search_mode == "interval":
-            # g's point value only steers Newton: no error bound needed.
-            F, eF = evaluate_with_error(f, env, err, m64)
-            return F, eF, evaluate(ge, env, m64), None
-        (F, eF), (g, eg) = evaluate_with_error([f, ge], env, err, m64)
-        return F, eF, g, eg
 
-    def segment_bounds(lo, hi):
-        """Float32 interval of g (or h) over the local segment u = e + [lo, hi] d."""
-        Si = bounds.segment_interval(ge if search_mode == "interval" else he, e32, d32, lo, hi, m)
-        return Si.lo, Si.hi
-
-    def table_bounds(lo, hi, rng):
-        """Float32 intervals of g and F over the segment, over the cell's rows."""
-        return K.tables.segment(e32, d32, lo, hi, rng, m)
-
-    def natural_bounds(lo, hi):
-        """Float32 interval of F itself over the same segment."""
-        Fi = bounds.segment_interval(f, e32, d32, lo, hi, m)
-        return Fi.lo, Fi.hi
-
-    def sign_of(lo, hi):
-        """+1 / -1 where [lo, hi] has one strict sign, else 0 (NaN: 0)."""
-        return dr.select(lo > 0, 1, dr.select(hi < 0, -1, 0))
-
-    def sign_known(F, eF):
-        """Sign of a point value outside its error bound; 0 where it cannot
-        be told from 0; 2 where F is undefined (NaN or infinite) or its
-        error bound overflows (the value cannot be trusted)."""
-        s_ = sign_of(F - eF, F + eF)
-        return dr.select(dr.isfinite(F) & dr.isfinite(eF), s_, 2)
-
-    def down(v):
-        """One float64 rounding of a sum, covered outward."""
-        return v - (dr.abs(v) * 2.0**-51 + 2.0**-1020)
-
-    def up(v):
-        return v + (dr.abs(v) * 2.0**-51 + 2.0**-1020)
-
-    def interval_of(level, idx, a, b):
-        w = (b - a) / Float(UInt32(1) << UInt32(level))
-        last = idx + 1 == (Int32(1) << level)
-        return a + Float(idx) * w, dr.select(last, b, a + Float(idx + 1) * w)
-
-    def advance(level, idx):
-        """The next interval to the right in the implicit binary tree."""
-        nxt = idx + 1
-        tz = dr.minimum(Int32(dr.tzcnt(UInt32(nxt))), level)
-        level, idx = level - tz, nxt >> tz
-        return level, idx, (level == 0) & (idx == 1)
-
-    def newton(t, F, g, t_lo, t_hi):
-        tn = t - F / g
-        return dr.select((tn > t_lo) & (tn < t_hi), tn, 0.5 * (t_lo + t_hi))
-
-    # One loop; each lane is in one of these modes. Every iteration takes
-    # one float64 point evaluation (F, g) and one interval evaluation.
-    SEEK, SEARCH, REFINE, TINY_A, TINY_B, EDGE, DONE = range(7)
+def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
+    import drjit as dr
+    Float = type(o.x)
+    K = surf._kernel_data(Float)
+    n = max(dr.width(o), dr.width(d))
+    active, t_start, rays = _prepare_rays(K, o, d, t_min, t_max, active, n)
+    ev = _Evaluator(surf, K, rays, n)
     max_it = surf.max_iterations
 
-    def body(mode, s_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min, bounded,
-             t_hit, hit, unres, evals, iters, rng):
-        # ---- Walk: the next occupied cell (DDA, jumping over empty space) ----
-        seek = mode == SEEK
-        found, ta, tb, stuck, slot = gridmod.next_occupied(dev, g_org, d32, s_cur, span, seek)
-        if tabled:      # the cell's rows
-            new = K.tables.ranges(slot, seek & found)
-            rng = tuple((dr.select(seek, ns, s_), dr.select(seek, ne, e_))
-                        for (ns, ne), (s_, e_) in zip(new, rng))
-        s_cur = dr.select(seek, tb, s_cur)
-        a = dr.select(seek, dr.maximum(ta - margin, 0.0), a)
-        b = dr.select(seek, dr.minimum(tb + margin, span), b)
-        level = dr.select(seek, 0, level)
-        idx = dr.select(seek, 0, idx)
-        mode = dr.select(seek, dr.select(found & (a <= b), SEARCH, DONE), mode)
-        iters = dr.select(stuck, max_it, iters)         # a walk that cannot end is capped
-        mode = dr.select(stuck, DONE, mode)
+    lane = _locate(ev, active, any_hit, max_it)
+    if not any_hit:
+        lane = _refine(ev, lane, max_it)
+    capped = lane.outcome == CAPPED
+    hit = lane.outcome == HIT
+    t64 = dr.select(hit, t_start + lane.t, math.inf)
+    return RayResult(Float(t64), hit, lane.evals, lane.iters, capped, lane.unres & hit, t64)
 
-        # ---- Evaluations ----
-        searching = mode == SEARCH
-        refining = mode == REFINE
-        lo, hi = interval_of(level, idx, a, b)
-        # [tm - r, tm + r] must cover [lo, hi]: the midpoint in float64
-        # (exact), the half width rounded outward.
-        tm64 = 0.5 * (Float64(lo) + Float64(hi))
-        r = Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22)
-        t_eval = dr.select(searching, tm64, t_n)
-        F, eF, g, eg = point_values(t_eval, rng)
-        busy = mode != DONE
-        iters = iters + dr.select(busy, 1, 0)
-        # Only searching lanes need interval bounds: a real branch skips the
-        # work where a whole SIMD packet is refining. The global mode uses
-        # its one G instead.
-        local_bounds = searching & (search_mode != "global")
-        if tabled:
-            S_lo, S_hi, Fn_lo, Fn_hi = (Float64(v) for v in dr.if_stmt(
-                args=(lo, hi, rng), cond=local_bounds, true_fn=table_bounds,
-                false_fn=lambda lo, hi, rng: (Float(0), Float(0), Float(-dr.inf), Float(dr.inf)),
-                label="lgshape_bounds"))
-        else:
-            S_lo, S_hi = (Float64(v) for v in dr.if_stmt(
-                args=(lo, hi), cond=local_bounds, true_fn=segment_bounds,
-                false_fn=lambda lo, hi: (Float(0), Float(0)), label="lgshape_bounds"))
 
-        # ---- Search step: exclude, bracket, split (or tiny) ----
-        defined = dr.isfinite(F) & dr.isfinite(eF)
-        Fm_lo, Fm_hi = F - eF, F + eF
-        r64 = Float64(r)
-        if search_mode == "interval":
-            # Mean-value form: F(t) in F(t_m) + [g] [-r, r].
-            g_lo, g_hi = S_lo, S_hi
-            mv_lo = down(Fm_lo + dr.minimum(r64 * g_lo, -r64 * g_hi))
-            mv_hi = up(Fm_hi + dr.maximum(r64 * g_hi, -r64 * g_lo))
-            Fa = (down(Fm_lo - r64 * g_hi), up(Fm_hi - r64 * g_lo))
-            Fb = (down(Fm_lo + r64 * g_lo), up(Fm_hi + r64 * g_hi))
-        else:
-            # Second-order Taylor form with G >= |h|: the seed's |g(t_m)| > G r.
-            h_lo, h_hi = (S_lo, S_hi) if search_mode == "taylor" else (-G_glob, G_glob)
-            G = dr.maximum(dr.abs(h_lo), dr.abs(h_hi))
-            q2 = 0.5 * r64 * r64
-            gm_lo, gm_hi = g - eg, g + eg
-            ag = dr.maximum(dr.abs(gm_lo), dr.abs(gm_hi)) * r64
-            g_lo, g_hi = down(gm_lo - G * r64), up(gm_hi + G * r64)
-            mv_lo = down(Fm_lo - ag + dr.minimum(h_lo, 0) * q2)
-            mv_hi = up(Fm_hi + ag + dr.maximum(h_hi, 0) * q2)
-            Fa = (down(Fm_lo - gm_hi * r64 + h_lo * q2), up(Fm_hi - gm_lo * r64 + h_hi * q2))
-            Fb = (down(Fm_lo + gm_lo * r64 + h_lo * q2), up(Fm_hi + gm_hi * r64 + h_hi * q2))
-        # F over the interval: the mean-value form where it is finite (F(t_m)
-        # defined, its derivative bounded); else the natural interval form,
-        # evaluated only for those lanes (undefined points, domain edges,
-        # poles), where it also tells whether F is bounded.
-        mv_ok = defined & dr.isfinite(mv_lo) & dr.isfinite(mv_hi)
-        need_fi = searching & ~mv_ok
-        if tabled:      # computed with g's bounds, over the same rows: always there
-            Fi_lo, Fi_hi = Fn_lo, Fn_hi
-        else:
-            Fi_lo, Fi_hi = (Float64(v) for v in dr.if_stmt(
-                args=(lo, hi), cond=need_fi, true_fn=natural_bounds,
-                false_fn=lambda lo, hi: (Float(-dr.inf), Float(dr.inf)), label="lgshape_natural"))
-        evals = evals + dr.select(busy, 1, 0) + dr.select(local_bounds, 1, 0) \
-            + dr.select(need_fi, 1, 0)
-        # Both forms enclose F: where both are there, their intersection
-        # (the natural form is the tighter one on a ray passing a distance
-        # field's surface at a grazing angle, the mean-value form on short
-        # intervals).
-        F_lo = dr.select(mv_ok, dr.maximum(mv_lo, Fi_lo), Fi_lo)
-        F_hi = dr.select(mv_ok, dr.minimum(mv_hi, Fi_hi), Fi_hi)
-        F_lo = dr.select(dr.isnan(F_lo), -dr.inf, F_lo)
-        F_hi = dr.select(dr.isnan(F_hi), dr.inf, F_hi)
-        excluded = (F_lo > 0) | (F_hi < 0)
-        # Monotone: g keeps one sign, with finite bounds (an unbounded g may
-        # hide a pole or the edge of f's domain).
-        monotone = defined & ((g_lo > 0) | (g_hi < 0)) & dr.isfinite(g_lo) & dr.isfinite(g_hi)
-        s_a, s_b, s_m = sign_of(*Fa), sign_of(*Fb), sign_of(Fm_lo, Fm_hi)
-        left = monotone & (s_m != 0) & (s_a == -s_m)
-        right = monotone & ~left & (s_m != 0) & (s_b == -s_m)
-        empty = searching & (excluded | (monotone & (s_m != 0) & (s_a == s_m) & (s_b == s_m)))
-        bracket = searching & ~empty & (left | right)
-        tiny = searching & ~empty & ~bracket & ((r < r_min) | (level >= MAX_LEVEL))
-        split = searching & ~empty & ~bracket & ~tiny
-        # F bounded over the tiny interval: no pole inside it.
-        is_bounded = mv_ok | (dr.isfinite(Fi_lo) & dr.isfinite(Fi_hi))
-        # A tiny interval whose middle value is within its error bound of 0
-        # is a hit (a tangent touch or singular point, to float precision).
-        tiny_zero = tiny & defined & (s_m == 0) & is_bounded
-        tiny_check = tiny & ~tiny_zero
+# What a lane does in one iteration of the search loop (``_Lane.mode``).
+SEEK, SEARCH, TINY_A, TINY_B, EDGE, END = range(6)
 
-        # ---- Tiny interval: F at both ends decides (two iterations) ----
-        tiny_a = mode == TINY_A
-        tiny_b = mode == TINY_B
-        s_here = sign_known(F, eF)
-        s1, s2 = F_a, s_here              # F_a holds the sign at the left end
-        ends_ok = tiny_b & bounded & (s1 != 2) & (s2 != 2)
-        tiny_root = ends_ok & (s1 != s2)
-        # One end outside f's domain: the root may lie between the domain's
-        # edge and the defined end; the edge search below looks there.
-        one_end = tiny_b & bounded & ((s1 == 2) != (s2 == 2))
-        s_def = dr.select(s1 == 2, s2, s1)
-        edge_at_end = one_end & (s_def == 0)
-        tiny_at_end = (tiny_root & ((s1 == 0) | (s2 == 0))) | edge_at_end
-        tiny_bracket = tiny_root & ~tiny_at_end
-        edge_start = one_end & ~edge_at_end
-        tiny_none = tiny_b & ~tiny_root & ~one_end
 
-        # ---- Edge of the domain: bisect towards it, watching the sign ----
-        # [t_lo, t_hi] has one defined end (F_a: +1 the left one, -1 the
-        # right one) of sign s_lo; each step looks at the middle t_n.
-        edge = mode == EDGE
-        left_def = F_a > 0
-        edge_zero = edge & (s_here == 0)
-        edge_bracket = edge & (s_here != 2) & (s_here != 0) & (s_here != s_lo)
-        undef_to_mid = edge & (s_here == 2)
-        def_to_mid = edge & (s_here == s_lo)
-        e_lo = dr.select((undef_to_mid & ~left_def) | (def_to_mid & left_def), t_n, t_lo)
-        e_hi = dr.select((undef_to_mid & left_def) | (def_to_mid & ~left_def), t_n, t_hi)
-        edge_none = (undef_to_mid | def_to_mid) & ((e_hi - e_lo < 1e-4 * tol)
-                                                   | (t_n <= t_lo) | (t_n >= t_hi))
+@dataclass
+class _Lane:
+    """A ray's search state (Dr.Jit arrays, one entry per ray)."""
+    mode: object         # Int32: SEEK, SEARCH, TINY_A, TINY_B, EDGE or END
+    outcome: object      # Int32: WALKING, NONE, BRACKET, HIT or CAPPED
+    s_cur: object        # Float: where the walk goes on from (the cell's exit)
+    a: object            # Float: the cell's segment [a, b]
+    b: object
+    level: object        # Int32: the interval of the bisection in [a, b]
+    idx: object          # Int32
+    t: object            # Float64: the hit; the next point (tiny, edge, refine)
+    t_lo: object         # Float64: a bracket [t_lo, t_hi] (or a tiny interval)
+    t_hi: object
+    s_lo: object         # Int32: sign of F at t_lo
+    F_a: object          # Int32: sign of F at a tiny interval's left end;
+                         # the defined end of an edge search (+1 left, -1 right)
+    g_min: object        # Float64: min |g| over the bracket (0: unknown)
+    bounded: object      # Bool: F bounded over the tiny interval
+    unres: object        # Bool: decided at the minimum width
+    evals: object        # UInt32
+    iters: object        # UInt32
+    rng: tuple           # the rows of the cell (table forms)
 
-        # ---- Refine: safeguarded Newton in float64 ----
-        same = dr.select(F > 0, 1, dr.select(F < 0, -1, 0)) == s_lo
-        r_lo = dr.select(refining & same, t_n, t_lo)
-        r_hi = dr.select(refining & ~same, t_n, t_hi)
-        t_next = newton(t_n, F, g, r_lo, r_hi)
-        # Where |F| / min |g| on the bracket (a proven distance to the root)
-        # is below tol, t_n is within tol already: take its Newton step
-        # kept in the bracket, never the safeguard's bisection midpoint.
-        close = (F == 0) | (dr.abs(F) < g_min * tol)
-        t_next = dr.select(F == 0, t_n,                # t_n is the root itself
-                 dr.select(close, dr.clip(t_n - F / g, r_lo, r_hi), t_next))
-        # Converged: that, or a step below tol, or a bracket below tol.
-        conv = refining & (close | (dr.abs(t_next - t_n) < tol) | (r_hi - r_lo < tol))
+    def astuple(self):
+        return tuple(getattr(self, f.name) for f in fields(self))
 
-        # ---- Transitions ----
-        lv_n, ix_n, seg_done = advance(level, idx)
-        moving_on = empty | tiny_none | edge_none
-        level = dr.select(split, level + 1, dr.select(moving_on, lv_n, level))
-        idx = dr.select(split, idx << 1, dr.select(moving_on, ix_n, idx))
-        # an edge bracket lies between the middle and the defined end
-        eb_lo = dr.select(left_def, t_lo, t_n)
-        eb_hi = dr.select(left_def, t_n, t_hi)
-        t_lo = dr.select(bracket, dr.select(left, Float64(lo), tm64),
-               dr.select(tiny_check, Float64(lo),
-               dr.select(refining, r_lo,
-               dr.select(edge_bracket, eb_lo, dr.select(edge, e_lo, t_lo)))))
-        t_hi = dr.select(bracket, dr.select(left, tm64, Float64(hi)),
-               dr.select(tiny_check, Float64(hi),
-               dr.select(refining, r_hi,
-               dr.select(edge_bracket, eb_hi, dr.select(edge, e_hi, t_hi)))))
-        s_lo = dr.select(bracket, dr.select(left, s_a, s_m),
-               dr.select(tiny_bracket, s1,
-               dr.select(edge_start, s_def,
-               dr.select(edge_bracket & ~left_def, s_here, s_lo))))
-        g_min = dr.select(bracket, dr.minimum(dr.abs(g_lo), dr.abs(g_hi)),
-                          dr.select(tiny_bracket | edge_bracket, 0.0, g_min))
-        bounded = dr.select(tiny_check, is_bounded, bounded)
-        F_a = dr.select(tiny_a, s_here, dr.select(edge_start, dr.select(s1 == 2, -1, 1), F_a))
-        t_n = dr.select(bracket, newton(tm64, F, g, t_lo, t_hi),
-              dr.select(tiny_check, t_lo,
-              dr.select(tiny_a, t_hi,
-              dr.select(tiny_bracket | edge_bracket | edge_start | edge, 0.5 * (t_lo + t_hi),
-              dr.select(refining, t_next, t_n)))))
+    @classmethod
+    def start(cls, ev, active):
+        import drjit as dr
+        K = ev.K
+        Float, Float64 = K.m.Float, K.m64.Float
+        Int32, UInt32, Bool = (dr.int32_array_t(Float), dr.uint32_array_t(Float),
+                               dr.mask_t(Float))
+        n = dr.width(ev.rays.span)
 
-        new_bracket = tiny_bracket | edge_bracket
-        first_hit = (tiny_zero | edge_zero | (any_hit & (bracket | new_bracket)) | tiny_at_end | conv)
-        at_end = dr.select(s1 == 0, t_lo, t_hi)          # (t_lo, t_hi: the tiny interval's ends)
-        if any_hit:
-            t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, at_end,
-                      dr.select(edge_zero, t_n, dr.select(conv, t_next, 0.5 * (t_lo + t_hi)))))
-        else:
-            t_found = dr.select(tiny_zero, tm64, dr.select(tiny_at_end, at_end,
-                      dr.select(edge_zero, t_n, t_next)))
-        hit = hit | first_hit
-        unres = unres | (first_hit & (tiny_zero | tiny_at_end | edge_zero)) | (new_bracket & ~hit)
-        t_hit = dr.select(first_hit, t_found, t_hit)
+        def z(T):
+            return dr.zeros(T, n)
+        return cls(dr.select(active, SEEK, END) + z(Int32), dr.select(active, WALKING, NONE)
+                   + z(Int32), z(Float), z(Float), z(Float), z(Int32), z(Int32), z(Float64),
+                   z(Float64), z(Float64), z(Int32), z(Int32), z(Float64), z(Bool), z(Bool),
+                   z(UInt32), z(UInt32),
+                   tuple((z(UInt32), z(UInt32)) for _ in (K.tables.groups if ev.tabled else ())))
 
-        mode = dr.select(first_hit, DONE,
-               dr.select(bracket | new_bracket, REFINE,
-               dr.select(tiny_check, TINY_A,
-               dr.select(tiny_a, TINY_B,
-               dr.select(edge_start, EDGE,
-               dr.select(moving_on, dr.select(seg_done, SEEK, SEARCH),
-               dr.select(tiny_b, SEARCH, mode)))))))
-        mode = dr.select(iters >= max_it, DONE, mode)
-        return (mode, s_cur, a, b, level, idx, t_lo, t_hi, t_n, F_a, s_lo, g_min, bounded,
-                t_hit, hit, unres, evals, iters, rng)
 
-    def z(T):
-        return dr.zeros(T, n)
-    mode0 = dr.select(active, SEEK, DONE) + z(Int32)
-    state = (mode0, z(Float), z(Float), z(Float), z(Int32), z(Int32),
-             z(Float64), z(Float64), z(Float64), z(Int32), z(Int32), z(Float64), z(Bool),
-             dr.full(Float64, math.inf, n), z(Bool), z(Bool), z(UInt32), z(UInt32),
-             tuple((z(UInt32), z(UInt32)) for _ in (K.tables.groups if tabled else ())))
-    out = dr.while_loop(state=state, cond=lambda mode, *_: mode != DONE, body=body,
-                        label="lgshape_search")
-    s_hit, hit, unres, evals, iters = out[13:18]
-    capped = iters >= max_it
-    hit = hit & ~capped
-    t64 = dr.select(hit, t_start + s_hit, math.inf)
-    return RayResult(Float(t64), hit, evals, iters, capped, unres, t64)
+def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
+    """The loop over the occupied cells a ray crosses, nearest first. One
+    iteration: :func:`_walk` to the next cell where a lane needs one, one
+    evaluation (the interval test of the current interval, or a point), and
+    :func:`_step`, the search's decision. Ends with a hit, a bracket to
+    refine, no root or the cap."""
+    import drjit as dr
+    walker = gridmod.Walker(ev.K.grid, ev.rays.g_org, ev.rays.d32, ev.rays.span)
+
+    def body(*state):
+        lane = _Lane(*state)
+        _walk(ev, walker, lane)
+        _step(ev, lane, any_hit, max_it)
+        return lane.astuple()
+    out = dr.while_loop(state=_Lane.start(ev, active).astuple(),
+                        cond=lambda mode, *_: mode != END, body=body, label="lgshape_search")
+    return _Lane(*out)
+
+
+def _walk(ev: _Evaluator, walker, lane: _Lane):
+    """Walk: lanes in SEEK go to the next occupied cell (the DDA of
+    :class:`lgshape.grid.Walker`), whose segment, widened by the margin,
+    becomes the root of the bisection; no cell left: no root."""
+    import drjit as dr
+    R = ev.rays
+    seek = lane.mode == SEEK
+    found, ta, tb, stuck, slot = walker.next(lane.s_cur, seek)
+    if ev.tabled:       # the cell's rows
+        new = ev.K.tables.ranges(slot, seek & found)
+        lane.rng = tuple((dr.select(seek, ns, s_), dr.select(seek, ne, e_))
+                         for (ns, ne), (s_, e_) in zip(new, lane.rng))
+    a = dr.maximum(ta - R.margin, 0.0)
+    b = dr.minimum(tb + R.margin, R.span)
+    lane.s_cur = dr.select(seek, tb, lane.s_cur)
+    lane.a = dr.select(seek, a, lane.a)
+    lane.b = dr.select(seek, b, lane.b)
+    lane.level = dr.select(seek, 0, lane.level)
+    lane.idx = dr.select(seek, 0, lane.idx)
+    cell = found & (a <= b)
+    lane.outcome = dr.select(seek & stuck, CAPPED,            # a walk that cannot end
+                   dr.select(seek & ~cell, NONE, lane.outcome))
+    lane.mode = dr.select(seek, dr.select(cell, SEARCH, END), lane.mode)
+
+
+def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
+    """Search: one evaluation and the decision it allows. A SEARCH lane
+    tests its interval of the bisection (the whole cell first): no root ->
+    the next interval (the next cell after the last); one root -> a bracket
+    (to refine); undecided -> split, or, below the minimum width, its ends
+    decide (TINY_A, TINY_B: one point each). Where one end of a tiny
+    interval lies outside f's domain, the root may lie between the domain's
+    edge and the defined end: found by bisecting towards the edge (EDGE)."""
+    import drjit as dr
+    R = ev.rays
+    Float64 = ev.K.m64.Float
+    UInt32 = dr.uint32_array_t(ev.K.m.Float)
+    mode = lane.mode
+    searching = mode == SEARCH
+    lo, hi = _interval_of(lane.level, lane.idx, lane.a, lane.b)
+    tm = 0.5 * (Float64(lo) + Float64(hi))
+    F, eF, g, eg = ev.point(dr.select(searching, tm, lane.t), lane.rng)
+    T = ev.test(lo, hi, lane.rng, searching, at=(F, eF, g, eg))
+    busy = mode != END
+    lane.iters = lane.iters + dr.select(busy, 1, 0)
+    lane.evals = lane.evals + dr.select(busy, 1, 0) + dr.select(searching, UInt32(T.evals - 1), 0)
+
+    # ---- an interval the test left open: split, or below the minimum width ----
+    tiny = T.open & ((T.r < R.r_min) | (lane.level >= MAX_LEVEL))
+    split = T.open & ~tiny
+    # a tiny interval whose middle value is within its error bound of 0 is
+    # a hit (a tangent touch or singular point, to float precision)
+    tiny_zero = tiny & T.defined & (T.s_m == 0) & T.bounded
+    tiny_check = tiny & ~tiny_zero
+
+    # ---- tiny interval: F at both ends decides (two iterations) ----
+    tiny_a, tiny_b = mode == TINY_A, mode == TINY_B
+    s_here = _sign_known(F, eF)
+    s1, s2 = lane.F_a, s_here              # F_a holds the sign at the left end
+    ends_ok = tiny_b & lane.bounded & (s1 != 2) & (s2 != 2)
+    tiny_root = ends_ok & (s1 != s2)
+    # one end outside f's domain: the root may lie between the domain's
+    # edge and the defined end; the edge search looks there
+    one_end = tiny_b & lane.bounded & ((s1 == 2) != (s2 == 2))
+    s_def = dr.select(s1 == 2, s2, s1)
+    edge_at_end = one_end & (s_def == 0)
+    tiny_at_end = (tiny_root & ((s1 == 0) | (s2 == 0))) | edge_at_end
+    tiny_bracket = tiny_root & ~tiny_at_end
+    edge_start = one_end & ~edge_at_end
+    tiny_none = tiny_b & ~tiny_root & ~one_end
+
+    # ---- edge of the domain: bisect towards it, watching the sign ----
+    # [t_lo, t_hi] has one defined end (F_a: +1 the left one, -1 the right
+    # one) of sign s_lo; each step looks at the middle t.
+    t_lo, t_hi, t_n = lane.t_lo, lane.t_hi, lane.t
+    edge = mode == EDGE
+    left_def = lane.F_a > 0
+    edge_zero = edge & (s_here == 0)
+    edge_bracket = edge & (s_here != 2) & (s_here != 0) & (s_here != lane.s_lo)
+    undef_to_mid = edge & (s_here == 2)
+    def_to_mid = edge & (s_here == lane.s_lo)
+    e_lo = dr.select((undef_to_mid & ~left_def) | (def_to_mid & left_def), t_n, t_lo)
+    e_hi = dr.select((undef_to_mid & left_def) | (def_to_mid & ~left_def), t_n, t_hi)
+    edge_none = (undef_to_mid | def_to_mid) & ((e_hi - e_lo < 1e-4 * R.tol)
+                                               | (t_n <= t_lo) | (t_n >= t_hi))
+
+    # ---- transitions ----
+    lv_n, ix_n, seg_done = _advance(lane.level, lane.idx)
+    moving_on = T.empty | tiny_none | edge_none
+    lane.level = dr.select(split, lane.level + 1, dr.select(moving_on, lv_n, lane.level))
+    lane.idx = dr.select(split, lane.idx << 1, dr.select(moving_on, ix_n, lane.idx))
+    # an edge bracket lies between the middle and the defined end
+    eb_lo, eb_hi = dr.select(left_def, t_lo, t_n), dr.select(left_def, t_n, t_hi)
+    t_lo = dr.select(T.bracket, T.b_lo, dr.select(tiny_check, Float64(lo),
+           dr.select(edge_bracket, eb_lo, dr.select(edge, e_lo, t_lo))))
+    t_hi = dr.select(T.bracket, T.b_hi, dr.select(tiny_check, Float64(hi),
+           dr.select(edge_bracket, eb_hi, dr.select(edge, e_hi, t_hi))))
+    lane.s_lo = dr.select(T.bracket, T.b_sign, dr.select(tiny_bracket, s1,
+                dr.select(edge_start, s_def,
+                dr.select(edge_bracket & ~left_def, s_here, lane.s_lo))))
+    new_bracket = tiny_bracket | edge_bracket
+    lane.g_min = dr.select(T.bracket, T.g_min, dr.select(new_bracket, 0.0, lane.g_min))
+    lane.bounded = dr.select(tiny_check, T.bounded, lane.bounded)
+    lane.F_a = dr.select(tiny_a, s_here,
+               dr.select(edge_start, dr.select(s1 == 2, -1, 1), lane.F_a))
+    found = tiny_zero | edge_zero | tiny_at_end
+    at_end = dr.select(s1 == 0, t_lo, t_hi)      # (the tiny interval's ends)
+    lane.t = dr.select(T.bracket, _newton(tm, F, g, T.b_lo, T.b_hi),
+             dr.select(tiny_check, t_lo, dr.select(tiny_a, t_hi,
+             dr.select(new_bracket | edge_start | edge, 0.5 * (t_lo + t_hi),
+             dr.select(tiny_zero, tm, dr.select(tiny_at_end, at_end, t_n))))))
+    lane.t_lo, lane.t_hi = t_lo, t_hi
+    lane.unres = lane.unres | found | (new_bracket & (not any_hit))
+    bracketed = T.bracket | new_bracket
+    if any_hit:          # a bracket proves a root: enough for an any-hit query
+        lane.t = dr.select(bracketed, 0.5 * (t_lo + t_hi), lane.t)
+        found = found | bracketed
+    lane.outcome = dr.select(found, HIT, dr.select(bracketed, BRACKET, lane.outcome))
+    lane.mode = dr.select(found | bracketed, END,
+                dr.select(tiny_check, TINY_A, dr.select(tiny_a, TINY_B,
+                dr.select(edge_start, EDGE,
+                dr.select(moving_on, dr.select(seg_done, SEEK, SEARCH),
+                dr.select(tiny_b, SEARCH, mode))))))
+    capped = (lane.mode != END) & (lane.iters >= max_it)
+    lane.outcome = dr.select(capped, CAPPED, lane.outcome)
+    lane.mode = dr.select(capped, END, lane.mode)
+
+
+def _interval_of(level, idx, a, b):
+    """The idx-th of the 2^level equal parts of [a, b] (the last one ends
+    at b exactly)."""
+    import drjit as dr
+    Float = type(a)
+    UInt32, Int32 = dr.uint32_array_t(Float), dr.int32_array_t(Float)
+    w = (b - a) / Float(UInt32(1) << UInt32(level))
+    last = idx + 1 == (Int32(1) << level)
+    return a + Float(idx) * w, dr.select(last, b, a + Float(idx + 1) * w)
+
+
+def _advance(level, idx):
+    """The next interval to the right in the implicit binary tree, and
+    whether the tree is done."""
+    import drjit as dr
+    nxt = idx + 1
+    tz = dr.minimum(type(idx)(dr.tzcnt(dr.uint32_array_t(type(idx))(nxt))), level)
+    level, idx = level - tz, nxt >> tz
+    return level, idx, (level == 0) & (idx == 1)
+
+
+def _refine(ev: _Evaluator, lane: _Lane, max_it) -> _Lane:
+    """Refine: safeguarded Newton in float64 in each bracket (bisection
+    where a step leaves it) until the step, the bracket, or the proven
+    distance to the root |F| / min |g|, is below the tolerance. A loop of
+    its own after the search, with only its own state."""
+    import drjit as dr
+    R = ev.rays
+
+    def body(outcome, t, t_lo, t_hi, evals, iters):
+        refining = outcome == BRACKET
+        F, _, g, _ = ev.point(t, lane.rng)
+        same = dr.select(F > 0, 1, dr.select(F < 0, -1, 0)) == lane.s_lo
+        r_lo = dr.select(refining & same, t, t_lo)
+        r_hi = dr.select(refining & ~same, t, t_hi)
+        t_next = _newton(t, F, g, r_lo, r_hi)
+        # where |F| / min |g| on the bracket (a proven distance to the root)
+        # is below tol, t is within tol already: take its Newton step kept
+        # in the bracket, never the safeguard's bisection midpoint
+        close = (F == 0) | (dr.abs(F) < lane.g_min * R.tol)
+        t_next = dr.select(F == 0, t, dr.select(close, dr.clip(t - F / g, r_lo, r_hi), t_next))
+        conv = refining & (close | (dr.abs(t_next - t) < R.tol) | (r_hi - r_lo < R.tol))
+        iters = iters + dr.select(refining, 1, 0)
+        evals = evals + dr.select(refining, 1, 0)
+        outcome = dr.select(conv, HIT,
+                  dr.select(refining & (iters >= max_it), CAPPED, outcome))
+        return outcome, dr.select(refining, t_next, t), r_lo, r_hi, evals, iters
+
+    out = dr.while_loop(state=(lane.outcome, lane.t, lane.t_lo, lane.t_hi, lane.evals,
+                               lane.iters),
+                        cond=lambda outcome, *_: outcome == BRACKET, body=body,
+                        label="lgshape_refine")
+    lane.outcome, lane.t, lane.t_lo, lane.t_hi, lane.evals, lane.iters = out
+    return lane
