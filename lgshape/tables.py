@@ -631,13 +631,11 @@ class DeviceTables:
     def __init__(self, tf: TableForm, rows: CellRows, grid, centre, Float):
         import drjit as dr
         from .expr.diff import DX, DY, DZ, derivative
-        from .grid import _brick_of
+        from .grid import cell_slots
         self.Float = Float
         self.Float64 = dr.float64_array_t(Float)
         UInt32 = dr.uint32_array_t(Float)
-        R = grid.resolution
-        b, bit = _brick_of(rows.cells, R)
-        slot_of_cell = (grid.top[b].astype(np.int64) - 1) * 64 + bit
+        slot_of_cell = cell_slots(grid, rows.cells)
         self.n_slots = int(len(grid.bricks) // 2) * 64
         c64 = np.asarray(centre, np.float64)
         c32 = c64.astype(np.float32)

@@ -310,8 +310,11 @@ class Surface:
 
     @property
     def memory_bytes(self) -> int:
-        """Size of the pruning structure (brick map)."""
-        return self.grid.nbytes
+        """Size of the pruning structure: the brick map, and the walk's
+        dense table up to :data:`lgshape.grid.DENSE_MAX_DEPTH` (4 bytes a
+        fine cell)."""
+        dense = 4 * self.grid.resolution ** 3 if self.depth <= gridmod.DENSE_MAX_DEPTH else 0
+        return self.grid.nbytes + dense
 
     def global_G(self) -> float:
         """G for unit directions: the hand-given one, else the Hessian norm over the box."""
@@ -873,10 +876,9 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
     """Search: one evaluation and the decision it allows. A SEARCH lane
     tests its interval of the bisection (the whole cell first): no root ->
     the next interval (the next cell after the last); one root -> a bracket
-    (to refine); undecided -> split, or, below the minimum width, its ends
-    decide (TINY_A, TINY_B: one point each). Where one end of a tiny
-    interval lies outside f's domain, the root may lie between the domain's
-    edge and the defined end: found by bisecting towards the edge (EDGE)."""
+    (to refine); undecided -> split, or, below the minimum width, the rare
+    cases of :func:`_small` (tiny intervals, edges of f's domain), in a
+    branch that a SIMD packet runs only where one of its lanes needs it."""
     import drjit as dr
     R = ev.rays
     Float64 = ev.K.m64.Float
@@ -891,12 +893,57 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
     lane.iters = lane.iters + dr.select(busy, 1, 0)
     lane.evals = lane.evals + dr.select(busy, 1, 0) + dr.select(searching, UInt32(T.evals - 1), 0)
 
-    # ---- an interval the test left open: split, or below the minimum width ----
+    # ---- no root: the next interval; one root: a bracket; else split ----
     tiny = T.open & ((T.r < R.r_min) | (lane.level >= MAX_LEVEL))
     split = T.open & ~tiny
-    # a tiny interval whose middle value is within its error bound of 0 is
-    # a hit (a tangent touch or singular point, to float precision)
-    tiny_zero = tiny & T.defined & (T.s_m == 0) & T.bounded
+    lv_n, ix_n, seg_done = _advance(lane.level, lane.idx)
+    lane.level = dr.select(split, lane.level + 1, dr.select(T.empty, lv_n, lane.level))
+    lane.idx = dr.select(split, lane.idx << 1, dr.select(T.empty, ix_n, lane.idx))
+    br = T.bracket
+    lane.t_lo = dr.select(br, T.b_lo, lane.t_lo)
+    lane.t_hi = dr.select(br, T.b_hi, lane.t_hi)
+    lane.s_lo = dr.select(br, T.b_sign, lane.s_lo)
+    lane.g_min = dr.select(br, T.g_min, lane.g_min)
+    if any_hit:          # a bracket proves a root: enough for an any-hit query
+        lane.t = dr.select(br, 0.5 * (T.b_lo + T.b_hi), lane.t)
+        lane.outcome = dr.select(br, HIT, lane.outcome)
+    else:
+        lane.t = dr.select(br, _newton(tm, F, g, T.b_lo, T.b_hi), lane.t)
+        lane.outcome = dr.select(br, BRACKET, lane.outcome)
+    lane.mode = dr.select(br, END, dr.select(T.empty & seg_done, SEEK, mode))
+
+    # ---- the rare cases ----
+    rare = tiny | (mode == TINY_A) | (mode == TINY_B) | (mode == EDGE)
+
+    def small(*args):
+        ln = _Lane(*args[:-9])
+        _small(ev, ln, *args[-9:], any_hit)
+        return ln.astuple()
+    state = dr.if_stmt(args=lane.astuple() + (mode, tiny, F, eF, tm, lo, hi, T.defined & T.bounded
+                                              & (T.s_m == 0), T.bounded),
+                       cond=rare, true_fn=small, false_fn=lambda *args: args[:-9],
+                       label="lgshape_small")
+    for f, v in zip(fields(lane), state):
+        setattr(lane, f.name, v)
+    capped = (lane.mode != END) & (lane.iters >= max_it)
+    lane.outcome = dr.select(capped, CAPPED, lane.outcome)
+    lane.mode = dr.select(capped, END, lane.mode)
+
+
+def _small(ev: _Evaluator, lane: _Lane, mode, tiny, F, eF, tm, lo, hi, zero_mid, bounded,
+           any_hit):
+    """Intervals below the minimum width, and the edges of f's domain.
+
+    A tiny interval (``tiny``) whose middle value is within its error bound
+    of 0 (``zero_mid``) is a hit: a tangent touch or singular point, to float
+    precision. Else F at both its ends decides (TINY_A, TINY_B: one point
+    each). Where one end lies outside f's domain, the root may lie between
+    the domain's edge and the defined end: found by bisecting towards the
+    edge, watching the sign (EDGE)."""
+    import drjit as dr
+    R = ev.rays
+    Float64 = ev.K.m64.Float
+    tiny_zero = tiny & zero_mid
     tiny_check = tiny & ~tiny_zero
 
     # ---- tiny interval: F at both ends decides (two iterations) ----
@@ -915,7 +962,7 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
     edge_start = one_end & ~edge_at_end
     tiny_none = tiny_b & ~tiny_root & ~one_end
 
-    # ---- edge of the domain: bisect towards it, watching the sign ----
+    # ---- edge of the domain: bisect towards it ----
     # [t_lo, t_hi] has one defined end (F_a: +1 the left one, -1 the right
     # one) of sign s_lo; each step looks at the middle t.
     t_lo, t_hi, t_n = lane.t_lo, lane.t_hi, lane.t
@@ -932,44 +979,39 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
 
     # ---- transitions ----
     lv_n, ix_n, seg_done = _advance(lane.level, lane.idx)
-    moving_on = T.empty | tiny_none | edge_none
-    lane.level = dr.select(split, lane.level + 1, dr.select(moving_on, lv_n, lane.level))
-    lane.idx = dr.select(split, lane.idx << 1, dr.select(moving_on, ix_n, lane.idx))
+    moving_on = tiny_none | edge_none
+    lane.level = dr.select(moving_on, lv_n, lane.level)
+    lane.idx = dr.select(moving_on, ix_n, lane.idx)
     # an edge bracket lies between the middle and the defined end
     eb_lo, eb_hi = dr.select(left_def, t_lo, t_n), dr.select(left_def, t_n, t_hi)
-    t_lo = dr.select(T.bracket, T.b_lo, dr.select(tiny_check, Float64(lo),
-           dr.select(edge_bracket, eb_lo, dr.select(edge, e_lo, t_lo))))
-    t_hi = dr.select(T.bracket, T.b_hi, dr.select(tiny_check, Float64(hi),
-           dr.select(edge_bracket, eb_hi, dr.select(edge, e_hi, t_hi))))
-    lane.s_lo = dr.select(T.bracket, T.b_sign, dr.select(tiny_bracket, s1,
-                dr.select(edge_start, s_def,
-                dr.select(edge_bracket & ~left_def, s_here, lane.s_lo))))
+    t_lo = dr.select(tiny_check, Float64(lo),
+           dr.select(edge_bracket, eb_lo, dr.select(edge, e_lo, t_lo)))
+    t_hi = dr.select(tiny_check, Float64(hi),
+           dr.select(edge_bracket, eb_hi, dr.select(edge, e_hi, t_hi)))
+    lane.s_lo = dr.select(tiny_bracket, s1, dr.select(edge_start, s_def,
+                dr.select(edge_bracket & ~left_def, s_here, lane.s_lo)))
     new_bracket = tiny_bracket | edge_bracket
-    lane.g_min = dr.select(T.bracket, T.g_min, dr.select(new_bracket, 0.0, lane.g_min))
-    lane.bounded = dr.select(tiny_check, T.bounded, lane.bounded)
+    lane.g_min = dr.select(new_bracket, 0.0, lane.g_min)
+    lane.bounded = dr.select(tiny_check, bounded, lane.bounded)
     lane.F_a = dr.select(tiny_a, s_here,
                dr.select(edge_start, dr.select(s1 == 2, -1, 1), lane.F_a))
     found = tiny_zero | edge_zero | tiny_at_end
     at_end = dr.select(s1 == 0, t_lo, t_hi)      # (the tiny interval's ends)
-    lane.t = dr.select(T.bracket, _newton(tm, F, g, T.b_lo, T.b_hi),
-             dr.select(tiny_check, t_lo, dr.select(tiny_a, t_hi,
+    lane.t = dr.select(tiny_check, t_lo, dr.select(tiny_a, t_hi,
              dr.select(new_bracket | edge_start | edge, 0.5 * (t_lo + t_hi),
-             dr.select(tiny_zero, tm, dr.select(tiny_at_end, at_end, t_n))))))
+             dr.select(tiny_zero, tm, dr.select(tiny_at_end, at_end, t_n)))))
     lane.t_lo, lane.t_hi = t_lo, t_hi
+    # a bracket found here is unresolved too: decided at the minimum width
     lane.unres = lane.unres | found | (new_bracket & (not any_hit))
-    bracketed = T.bracket | new_bracket
-    if any_hit:          # a bracket proves a root: enough for an any-hit query
-        lane.t = dr.select(bracketed, 0.5 * (t_lo + t_hi), lane.t)
-        found = found | bracketed
-    lane.outcome = dr.select(found, HIT, dr.select(bracketed, BRACKET, lane.outcome))
-    lane.mode = dr.select(found | bracketed, END,
+    if any_hit:
+        lane.t = dr.select(new_bracket, 0.5 * (t_lo + t_hi), lane.t)
+        found = found | new_bracket
+    lane.outcome = dr.select(found, HIT, dr.select(new_bracket, BRACKET, lane.outcome))
+    lane.mode = dr.select(found | new_bracket, END,
                 dr.select(tiny_check, TINY_A, dr.select(tiny_a, TINY_B,
                 dr.select(edge_start, EDGE,
                 dr.select(moving_on, dr.select(seg_done, SEEK, SEARCH),
-                dr.select(tiny_b, SEARCH, mode))))))
-    capped = (lane.mode != END) & (lane.iters >= max_it)
-    lane.outcome = dr.select(capped, CAPPED, lane.outcome)
-    lane.mode = dr.select(capped, END, lane.mode)
+                dr.select(tiny_b, SEARCH, lane.mode))))))
 
 
 def _interval_of(level, idx, a, b):

@@ -77,3 +77,83 @@ def test04_depth_bounds_termination_on_exact_vertices():
 def test05_bad_depth():
     with pytest.raises(ValueError, match="depth"):
         G.build(LIBRARY["sphere"]().expr, (-1,) * 3, (1,) * 3, depth=11)
+
+
+@pytest.mark.parametrize("name,depth", [("torus", 5), ("tangle", 6), ("sphere", 8)])
+def test06_dense_table_distances_are_lower_bounds(name, depth, rng):
+    """The walk's dense table (depth <= 8): occupied cells hold their slot,
+    empty ones a distance bound m q. Oracle: the exact distance, in float64,
+    from random points of empty cells to the nearest occupied cell box
+    (brute force over all occupied cells) is never below m q; and the bound
+    is useful (above a cell for most far cells)."""
+    spec = LIBRARY[name]()
+    g = G.build(spec.expr, *spec.bbox, depth=depth)
+    table, q = G.dense_table(g)
+    R = g.resolution
+    T = table.reshape(R, R, R)
+    c = g.cells.astype(int)
+    assert np.array_equal(T[c[:, 2], c[:, 1], c[:, 0]], G.cell_slots(g, g.cells))
+    assert np.all(G.cell_slots(g, g.cells) >= 0)
+    empty = np.argwhere(T < 0)[:, ::-1]                       # (i, j, k)
+    pick = empty[rng.choice(len(empty), size=min(150, len(empty)), replace=False)]
+    p = g.lo + (pick + rng.uniform(0, 1, pick.shape)) * g.cell_size
+    lo_o, hi_o = g.lo + c * g.cell_size, g.lo + (c + 1) * g.cell_size
+    gap = np.maximum(np.maximum(lo_o[None] - p[:, None], p[:, None] - hi_o[None]), 0)
+    dist = np.sqrt((gap ** 2).sum(-1)).min(1)
+    bound = (-1 - T[pick[:, 2], pick[:, 1], pick[:, 0]].astype(np.int64)) * q
+    assert np.all(bound <= dist), float((bound - dist).max())
+    far = dist > 4 * g.cell_size.max()
+    assert far.any() and np.mean(bound[far] > g.cell_size.min()) > 0.9
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test07_walk_visits_every_cell_a_line_crosses(dense, rng, monkeypatch):
+    """The walk (through the dense table, or the brick map used above
+    DENSE_MAX_DEPTH) returns, in
+    order, every occupied cell a ray crosses. Oracle: the cells under 8000
+    points per ray spaced along it (float64), less those the ray only grazes
+    within the nudge of an edge."""
+    import drjit as dr
+    from drjit.llvm.ad import Float
+    spec = LIBRARY["torus"]()
+    g = G.build(spec.expr, *spec.bbox, depth=6)
+    if not dense:
+        monkeypatch.setattr(G, "DENSE_MAX_DEPTH", 5)
+    dev = G.DeviceGrid(g, Float)
+    assert dev.dense == dense
+    lo, hi = np.asarray(g.lo), np.asarray(g.hi)
+    n = 32
+    o = lo + (hi - lo) * rng.uniform(0, 1, (n, 3))
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    # from each origin to the box's exit
+    with np.errstate(divide="ignore"):
+        t_exit = np.min(np.maximum((lo - o) / d, (hi - o) / d), axis=1)
+    occupied = {tuple(v) for v in g.cells.tolist()}
+    W = G.Walker(dev, [Float(o[:, a] - lo[a]) for a in range(3)],
+                 [Float(d[:, a]) for a in range(3)], Float(t_exit))
+    t = dr.zeros(Float, n)
+    active = dr.full(dr.mask_t(Float), True, n)
+    seen = [[] for _ in range(n)]
+    for _ in range(20 * g.resolution):
+        found, ta, tb, stuck, slot = W.next(t, active)
+        f, a_, b_ = (np.asarray(v) for v in (found, ta, tb))
+        for r in np.flatnonzero(f):
+            mid = o[r] + 0.5 * (a_[r] + b_[r]) * d[r]
+            seen[r].append(tuple(np.floor((mid - lo) / g.cell_size).astype(int)))
+        assert not np.asarray(stuck).any()
+        active = active & found
+        t = dr.select(found, tb, t)
+        if not dr.any(active):
+            break
+    s = np.linspace(0, 1, 8000)
+    for r in range(n):
+        pts = o[r] + (s * t_exit[r])[:, None] * d[r]
+        ijk = np.clip(np.floor((pts - lo) / g.cell_size).astype(int), 0, g.resolution - 1)
+        crossed = []
+        for c in map(tuple, ijk):
+            if c in occupied and (not crossed or crossed[-1] != c):
+                crossed.append(c)
+        # every occupied cell under a sample point is visited, in order
+        it = iter(seen[r])
+        assert all(c in it for c in crossed), (r, crossed, seen[r])

@@ -138,6 +138,28 @@ def test02_camera_rays_every_mode(name, search, depth):
            groups=np.repeat(["camera"], len(o32)), min_simple=10_000)
 
 
+
+@pytest.mark.parametrize("name", ["chmutov6", "tangle"])
+def test02b_brick_map_walk(name, monkeypatch):
+    """The walk through the brick map, which grids finer than
+    DENSE_MAX_DEPTH use instead of the dense table (forced here at depth 6).
+    Oracle: the companion-matrix roots, under test01's rules."""
+    from lgshape import grid as G
+    from lgshape.camera import primary_rays
+    monkeypatch.setattr(G, "DENSE_MAX_DEPTH", 5)
+    degree, F = FORMULAS[name]
+    spec = lgshape.surfaces.LIBRARY[name]()
+    surf = lgshape.Surface(spec, depth=6)
+    assert not surf._kernel_data(_llvm_float()).grid.dense
+    o32, d32 = primary_rays(spec.bbox, 192)
+    _check(surf, F, degree, o32, d32, groups=np.repeat(["camera"], len(o32)),
+           min_simple=5_000)
+
+
+def _llvm_float():
+    from drjit.llvm.ad import Float
+    return Float
+
 def _check(surf, F, degree, o32, d32, groups, min_simple=30_000, tangent_max=TANGENT_MAX,
            roots=None, t_min=0.0):
     """The rules of the module docstring (:func:`oracles.check_first_roots`)
