@@ -372,8 +372,11 @@ class Walker:
         t_out = dr.maximum(t_out, t + dr.maximum(self.t_nudge, dr.abs(t) * 2.0**-22))
         return hit, t_out, UInt32(v), inside
 
-    def next(self, t, active):
-        """(found, t_enter, t_exit, stuck, slot), see :func:`next_occupied`."""
+    def next(self, t, active, run: int = 1):
+        """(found, t_enter, t_exit, stuck, slot), see :func:`next_occupied`.
+        With ``run`` > 1, up to ``run`` consecutive occupied cells along the
+        ray are returned as one segment (from the first one's entry to the
+        last one's exit; ``slot``: the first one's)."""
         import drjit as dr
         Float = type(t)
         Int32 = dr.int32_array_t(Float)
@@ -381,22 +384,29 @@ class Walker:
         Bool = dr.mask_t(Float)
         max_steps = self.max_steps
 
-        def body(t, active, found, t_exit, steps, slot):
+        def body(t, active, found, t_enter, t_exit, steps, slot, cells):
             hit, t_out, cell_slot, inside = self.step(t, active)
-            found = found | hit
+            first = hit & ~found
+            t_enter = dr.select(first, t, t_enter)
+            slot = dr.select(first, cell_slot, slot)
             t_exit = dr.select(hit, t_out, t_exit)
-            slot = dr.select(hit, cell_slot, slot)
-            t = dr.select(inside & ~hit, t_out, t)
+            cells = cells + dr.select(hit, 1, 0)
+            # a run ends at an empty cell, at its length, or at t_end
+            ended = (found & ~hit) | (cells >= run)
+            found = found | hit
+            t = dr.select(inside & ~ended, t_out, t)
             steps = steps + 1
-            return t, inside & ~hit & (steps < max_steps), found, t_exit, steps, slot
+            return (t, inside & ~ended & (steps < max_steps), found, t_enter, t_exit, steps,
+                    slot, cells)
 
         n = dr.width(t)
-        t_in, walking, found, t_exit, steps, slot = dr.while_loop(
+        t_in, walking, found, t_enter, t_exit, steps, slot, _ = dr.while_loop(
             state=(Float(t), Bool(active), dr.zeros(Bool, n), dr.zeros(Float, n),
-                   dr.zeros(Int32, n), dr.zeros(UInt32, n)),
+                   dr.zeros(Float, n), dr.zeros(Int32, n), dr.zeros(UInt32, n),
+                   dr.zeros(Int32, n)),
             cond=lambda t, active, *_: active, body=body, label="lgshape_dda")
         stuck = ~found & (steps >= max_steps) & (t_in <= self.t_end)
-        return found, t_in, t_exit, stuck, slot
+        return found, dr.select(found, t_enter, t_in), t_exit, stuck, slot
 
 
 def slot_at(g: DeviceGrid, p):

@@ -106,13 +106,14 @@ def test06_dense_table_distances_are_lower_bounds(name, depth, rng):
     assert far.any() and np.mean(bound[far] > g.cell_size.min()) > 0.9
 
 
-@pytest.mark.parametrize("dense", [True, False])
-def test07_walk_visits_every_cell_a_line_crosses(dense, rng, monkeypatch):
+@pytest.mark.parametrize("dense,run", [(True, 1), (False, 1), (True, 3)])
+def test07_walk_visits_every_cell_a_line_crosses(dense, run, rng, monkeypatch):
     """The walk (through the dense table, or the brick map used above
-    DENSE_MAX_DEPTH) returns, in
-    order, every occupied cell a ray crosses. Oracle: the cells under 8000
-    points per ray spaced along it (float64), less those the ray only grazes
-    within the nudge of an edge."""
+    DENSE_MAX_DEPTH) returns, in order, every occupied cell a ray crosses
+    (with ``run`` > 1, segments of up to that many consecutive occupied
+    cells). Oracle: the cells under 8000 points per ray spaced along it
+    (float64): every point in an occupied cell lies in a returned segment,
+    and the segments are disjoint, in order, and hold at most ``run`` cells."""
     import drjit as dr
     from drjit.llvm.ad import Float
     spec = LIBRARY["torus"]()
@@ -134,26 +135,28 @@ def test07_walk_visits_every_cell_a_line_crosses(dense, rng, monkeypatch):
                  [Float(d[:, a]) for a in range(3)], Float(t_exit))
     t = dr.zeros(Float, n)
     active = dr.full(dr.mask_t(Float), True, n)
-    seen = [[] for _ in range(n)]
+    segments = [[] for _ in range(n)]
     for _ in range(20 * g.resolution):
-        found, ta, tb, stuck, slot = W.next(t, active)
+        found, ta, tb, stuck, slot = W.next(t, active, run)
         f, a_, b_ = (np.asarray(v) for v in (found, ta, tb))
         for r in np.flatnonzero(f):
-            mid = o[r] + 0.5 * (a_[r] + b_[r]) * d[r]
-            seen[r].append(tuple(np.floor((mid - lo) / g.cell_size).astype(int)))
+            segments[r].append((float(a_[r]), float(b_[r])))
         assert not np.asarray(stuck).any()
         active = active & found
         t = dr.select(found, tb, t)
         if not dr.any(active):
             break
     s = np.linspace(0, 1, 8000)
+    cell_t = float(g.cell_size.min())           # a cell, in t (unit directions)
+    slack = 1e-5 * cell_t                       # the walk's nudge and rounding
     for r in range(n):
-        pts = o[r] + (s * t_exit[r])[:, None] * d[r]
-        ijk = np.clip(np.floor((pts - lo) / g.cell_size).astype(int), 0, g.resolution - 1)
-        crossed = []
-        for c in map(tuple, ijk):
-            if c in occupied and (not crossed or crossed[-1] != c):
-                crossed.append(c)
-        # every occupied cell under a sample point is visited, in order
-        it = iter(seen[r])
-        assert all(c in it for c in crossed), (r, crossed, seen[r])
+        seg = np.array(segments[r]).reshape(-1, 2)
+        assert np.all(seg[:, 0] <= seg[:, 1]) and np.all(seg[1:, 0] >= seg[:-1, 1] - slack)
+        assert np.all(seg[:, 1] - seg[:, 0] <= run * np.sqrt(3) * g.cell_size.max() + slack)
+        ts = s * t_exit[r]
+        ijk = np.clip(np.floor((o[r] + ts[:, None] * d[r] - lo) / g.cell_size).astype(int),
+                      0, g.resolution - 1)
+        inside_occ = np.array([c in occupied for c in map(tuple, ijk)])
+        covered = ((ts[:, None] >= seg[None, :, 0] - slack)
+                   & (ts[:, None] <= seg[None, :, 1] + slack)).any(1)
+        assert np.all(covered[inside_occ]), (r, ts[inside_occ & ~covered][:5], seg)
