@@ -747,52 +747,81 @@ class DeviceTables:
         g = [evaluate(self.outer_g, {**env, **vals, **dd, **gk}, m64) for dd, gk in zip(dirs, grads)]
         return F, eF, g
 
-    # -- intervals over a segment -------------------------------------------------
-    def segment(self, e32, d32, lo, hi, rng, m):
-        """Float32 intervals of g = dF/dt and of F over the local segment
-        e + [lo, hi] d: (g_lo, g_hi, F_lo, F_hi)."""
+    # -- both at once ---------------------------------------------------------------
+    def point_segment(self, env, err, rng, m64, e32, d32, lo, hi, m):
+        """F with its error bound and g = dF/dt at one point (as
+        :meth:`point`, along env's direction), and float32 intervals of g and
+        F over the local segment e + [lo, hi] d, in one loop over the rows:
+        each row's parameters are gathered once for both (where they are
+        exact in float32; a gather costs about as much as a small
+        evaluation). Returns (F, eF, g, (g_lo, g_hi, F_lo, F_hi))."""
         import drjit as dr
         from .bounds import segment_env
-        from .expr import evaluate_interval
-        Float = self.Float
-        env = segment_env(e32, d32, lo, hi, m)
+        from .expr import evaluate, evaluate_interval, evaluate_with_error
+        Float, Float64 = self.Float, self.Float64
+        dd = {k: env[k] for k in ("dx", "dy", "dz")}
+        env, err = dict(env), dict(err)
         for i, v in enumerate("xyz"):        # local -> global coordinates
+            env[v] = env[v] + self.centre64[i]
+            err[v] = err.get(v, 0.0) + m64.u * dr.abs(env[v])
+        ienv = segment_env(e32, d32, lo, hi, m)
+        for i, v in enumerate("xyz"):
             c_lo, c_hi = self.centre32[i]
-            env[v] = iv.pad(m, iv.Interval(env[v].lo + c_lo, env[v].hi + c_hi))
+            ienv[v] = iv.pad(m, iv.Interval(ienv[v].lo + c_lo, ienv[v].hi + c_hi))
         n = dr.width(lo)
-        avals, agrads = {}, {}
+        vals, errs, grads, avals, agrads = {}, {}, {}, {}, {}
         for j, agg in enumerate(self.aggregates):
             comb, comb_g = self.combines[j]
-            z = dr.zeros(Float, n)
-            state = (z, Float(z), Float(z), Float(z), dr.full(dr.mask_t(Float), True, n))
+            z64, z32 = dr.zeros(Float64, n), dr.zeros(Float, n)
+            state = (z64, Float64(z64), Float64(z64), z32, Float(z32), Float(z32), Float(z32),
+                     dr.full(dr.mask_t(Float), True, n))
             for grp, (s, e) in zip(self.groups, rng):
                 if grp.aggregate != j:
                     continue
 
-                def body(i, vlo, vhi, glo, ghi, first, grp=grp, comb=comb, comb_g=comb_g):
-                    penv = dict(env)
+                def body(i, v, ev, gv, vlo, vhi, glo, ghi, first, grp=grp, comb=comb,
+                         comb_g=comb_g):
+                    penv, perr, qenv = dict(env), dict(err), dict(ienv)
                     for q in range(grp.width):
                         plo, phi = grp.p32[q]
                         a = dr.gather(Float, plo, i)
-                        penv[f"p{q}"] = a if phi is None else \
+                        penv[f"p{q}"] = dr.gather(Float64, grp.p64[q], i) if grp.p64 \
+                            else Float64(a)
+                        qenv[f"p{q}"] = a if phi is None else \
                             iv.Interval(a, dr.gather(Float, phi, i))
-                    tv, tg = evaluate_interval([grp.template, grp.g], penv, m)
-                    acc = iv.Interval(vlo, vhi)
-                    cv, cg = evaluate_interval([comb, comb_g], {
-                        "a": acc, "b": tv, "ga": iv.Interval(glo, ghi), "gb": tg}, m)
-                    return (i + 1, dr.select(first, tv.lo, cv.lo), dr.select(first, tv.hi, cv.hi),
-                            dr.select(first, tg.lo, cg.lo), dr.select(first, tg.hi, cg.hi),
+                    # the point
+                    tv, te = evaluate_with_error(grp.template, penv, perr, m64, safety=False)
+                    tg = evaluate(grp.g, {**penv, **dd}, m64)
+                    cv, ce = evaluate_with_error(comb, {"a": v, "b": tv}, {"a": ev, "b": te},
+                                                 m64, safety=False)
+                    cg = evaluate(comb_g, {"a": v, "b": tv, "ga": gv, "gb": tg}, m64)
+                    # the segment
+                    iv_, ig = evaluate_interval([grp.template, grp.g], qenv, m)
+                    civ, cig = evaluate_interval([comb, comb_g], {
+                        "a": iv.Interval(vlo, vhi), "b": iv_, "ga": iv.Interval(glo, ghi),
+                        "gb": ig}, m)
+                    f64 = dr.mask_t(Float64)(first)
+                    return (i + 1, dr.select(f64, tv, cv), dr.select(f64, te, ce),
+                            dr.select(f64, tg, cg),
+                            dr.select(first, iv_.lo, civ.lo), dr.select(first, iv_.hi, civ.hi),
+                            dr.select(first, ig.lo, cig.lo), dr.select(first, ig.hi, cig.hi),
                             dr.mask_t(Float)(False) & first)
 
                 out = dr.while_loop(state=(s, *state), cond=lambda i, *_, e=e: i < e,
-                                    body=body, label="lgshape_rows_iv")
+                                    body=body, label="lgshape_rows_both")
                 state = out[1:]
-            vlo, vhi, glo, ghi, first = state
+            v, ev, gv, vlo, vhi, glo, ghi, first = state
             ident = COMBINES[agg.op]
+            f64 = dr.mask_t(Float64)(first)
+            vals[f"A{j}"] = dr.select(f64, ident, v)
+            errs[f"A{j}"] = dr.select(f64, 0.0, ev)
+            grads[f"gA{j}"] = dr.select(f64, 0.0, gv)
             avals[f"A{j}"] = iv.Interval(dr.select(first, ident, vlo), dr.select(first, ident, vhi))
             agrads[f"gA{j}"] = iv.Interval(dr.select(first, 0.0, glo), dr.select(first, 0.0, ghi))
-        Fi, gi = evaluate_interval([self.outer, self.outer_g], {**env, **avals, **agrads}, m)
-        return gi.lo, gi.hi, Fi.lo, Fi.hi
+        F, eF = evaluate_with_error(self.outer, {**env, **vals}, {**err, **errs}, m64)
+        g = evaluate(self.outer_g, {**env, **vals, **dd, **grads}, m64)
+        Fi, gi = evaluate_interval([self.outer, self.outer_g], {**ienv, **avals, **agrads}, m)
+        return F, eF, g, (gi.lo, gi.hi, Fi.lo, Fi.hi)
 
 
 @dataclass

@@ -552,7 +552,7 @@ class _Evaluator:
     point values in float64 with error bounds, float32 intervals over
     segments, and the Kalra-Barr test of one interval (:meth:`test`)."""
 
-    def __init__(self, surf, K, rays: _Rays, n):
+    def __init__(self, surf, K, rays: _Rays):
         import drjit as dr
         self.dr = dr
         self.K, self.rays, self.mode = K, rays, surf.search
@@ -566,17 +566,36 @@ class _Evaluator:
                                       * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
         self.dirs = {"dx": rays.d64[0], "dy": rays.d64[1], "dz": rays.d64[2]}
 
-    def point(self, s, rng):
-        """F and g at s in float64 with error bounds of F (and of g where the
-        search mode uses g's value in a proof)."""
-        dr, K, R = self.dr, self.K, self.rays
-        m64 = K.m64
-        s = m64.Float(s)
+    def _point_env(self, s):
+        """The ray's point at s (float64) and the rounding of its coordinates."""
+        dr, R, u = self.dr, self.rays, self.K.m64.u
+        s = self.K.m64.Float(s)
         env, err = dict(self.dirs), {}
         for i, v in enumerate("xyz"):
             sd = s * R.d64[i]
             env[v] = R.e64[i] + sd
-            err[v] = m64.u * (dr.abs(sd) + dr.abs(env[v]))
+            err[v] = u * (dr.abs(sd) + dr.abs(env[v]))
+        return env, err
+
+    def point_and_bounds(self, s, lo, hi, rng, need):
+        """:meth:`point` at s and the float32 bounds over [lo, hi] where
+        ``need``: (S_lo, S_hi) of :meth:`_bounds`; for a table form also
+        (Fi_lo, Fi_hi) of F itself, both in one loop over the cell's rows
+        with the point values (every lane: each row's parameters are
+        gathered once)."""
+        K, R = self.K, self.rays
+        if self.tabled:
+            env, err = self._point_env(s)
+            F, eF, g, B = K.tables.point_segment(env, err, rng, K.m64, R.e32, R.d32, lo, hi, K.m)
+            return (F, eF, g, None), B
+        return self.point(s, rng), self._bounds(lo, hi, need)
+
+    def point(self, s, rng):
+        """F and g at s in float64 with error bounds of F (and of g where the
+        search mode uses g's value in a proof)."""
+        K = self.K
+        m64 = K.m64
+        env, err = self._point_env(s)
         if self.tabled:
             F, eF, (g,) = K.tables.point(env, err, rng, m64)
             return F, eF, g, None
@@ -587,18 +606,12 @@ class _Evaluator:
         (F, eF), (g, eg) = evaluate_with_error([self.f, self.ge], env, err, m64)
         return F, eF, g, eg
 
-    def _bounds(self, lo, hi, rng, need):
-        """Float32 intervals over the segment e + [lo, hi] d, where ``need``:
-        (S_lo, S_hi) of g (of h in the Taylor mode), and (Fi_lo, Fi_hi) of F
-        itself for a table form (both come from one pass over the rows)."""
+    def _bounds(self, lo, hi, need):
+        """Float32 interval (S_lo, S_hi) of g (of h in the Taylor mode) over
+        the segment e + [lo, hi] d, where ``need`` (a fused expression; a
+        table form's come from :meth:`point_and_bounds`)."""
         dr, K, R = self.dr, self.K, self.rays
         m, Float = K.m, K.m.Float
-        if self.tabled:
-            return dr.if_stmt(
-                args=(lo, hi, rng), cond=need,
-                true_fn=lambda lo, hi, rng: K.tables.segment(R.e32, R.d32, lo, hi, rng, m),
-                false_fn=lambda lo, hi, rng: (Float(0), Float(0), Float(-dr.inf), Float(dr.inf)),
-                label="lgshape_bounds")
         e = self.ge if self.mode == "interval" else self.he
 
         def true_fn(lo, hi):
@@ -619,20 +632,20 @@ class _Evaluator:
                           false_fn=lambda lo, hi: (Float(-dr.inf), Float(dr.inf)),
                           label="lgshape_natural")
 
-    def test(self, lo, hi, rng, active, at=None):
+    def test(self, lo, hi, rng, active, at, bounds):
         """The Kalra-Barr test of the ray interval [lo, hi] (float32 ends)
-        on the lanes ``active``: F and g at the middle (``at``: the point
-        values there, when the caller has them), bounds over the interval.
-        See :class:`_Test`."""
+        on the lanes ``active``, from the point values at its middle (``at``)
+        and the bounds over it (``bounds``), both from
+        :meth:`point_and_bounds`. See :class:`_Test`."""
         dr = self.dr
         Float64 = self.K.m64.Float
         # [tm - r, tm + r] must cover [lo, hi]: the midpoint in float64
         # (exact), the half width rounded outward.
         tm = 0.5 * (Float64(lo) + Float64(hi))
         r = self.K.m.Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22)
-        F, eF, g, eg = self.point(tm, rng) if at is None else at
+        F, eF, g, eg = at
         local = active & (self.mode != "global")
-        S_lo, S_hi, *Fn = (Float64(v) for v in self._bounds(lo, hi, rng, local))
+        S_lo, S_hi, *Fn = (Float64(v) for v in bounds)
         defined = dr.isfinite(F) & dr.isfinite(eF)
         Fm_lo, Fm_hi = F - eF, F + eF
         r64 = Float64(r)
@@ -782,7 +795,7 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
     K = surf._kernel_data(Float)
     n = max(dr.width(o), dr.width(d))
     active, t_start, rays = _prepare_rays(K, o, d, t_min, t_max, active, n)
-    ev = _Evaluator(surf, K, rays, n)
+    ev = _Evaluator(surf, K, rays)
     max_it = surf.max_iterations
 
     lane = _locate(ev, active, any_hit, max_it)
@@ -903,8 +916,10 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
     searching = mode == SEARCH
     lo, hi = _interval_of(lane.level, lane.idx, lane.a, lane.b)
     tm = 0.5 * (Float64(lo) + Float64(hi))
-    F, eF, g, eg = ev.point(dr.select(searching, tm, lane.t), lane.rng)
-    T = ev.test(lo, hi, lane.rng, searching, at=(F, eF, g, eg))
+    P, B = ev.point_and_bounds(dr.select(searching, tm, lane.t), lo, hi, lane.rng,
+                               searching & (ev.mode != "global"))
+    F, eF, g, eg = P
+    T = ev.test(lo, hi, lane.rng, searching, P, B)
     busy = mode != END
     lane.iters = lane.iters + dr.select(busy, 1, 0)
     lane.evals = lane.evals + dr.select(busy, 1, 0) + dr.select(searching, UInt32(T.evals - 1), 0)
