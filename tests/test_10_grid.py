@@ -79,9 +79,9 @@ def test05_bad_depth():
         G.build(LIBRARY["sphere"]().expr, (-1,) * 3, (1,) * 3, depth=11)
 
 
-@pytest.mark.parametrize("name,depth", [("torus", 5), ("tangle", 6), ("sphere", 8)])
+@pytest.mark.parametrize("name,depth", [("torus", 5), ("tangle", 6), ("sphere", 6)])
 def test06_dense_table_distances_are_lower_bounds(name, depth, rng):
-    """The walk's dense table (depth <= 8): occupied cells hold their slot,
+    """The walk's dense table: occupied cells hold their slot,
     empty ones a distance bound m q. Oracle: the exact distance, in float64,
     from random points of empty cells to the nearest occupied cell box
     (brute force over all occupied cells) is never below m q; and the bound
