@@ -159,11 +159,6 @@ class DeviceGrid:
             self.table = Int32(table)
             self.q = dr.opaque(Float, q)
 
-    @property
-    def nbytes(self) -> int:
-        """Device memory of the walk's arrays."""
-        return 4 * (len(self.top) + len(self.bricks) + (len(self.table) if self.dense else 0))
-
 
 #: The dense walk table is built up to this depth (64^3 cells, 1 MB).
 #: Measured on the scale section's union of spheres: at depth 7 as fast as
@@ -333,16 +328,25 @@ class Walker:
         v, brick, bit, hit = _cell_lookup(g, i, inside)
         # Exit of the cell (occupied brick) or of the empty cube of bricks.
         k = dr.select(brick, 0, dr.maximum(-v, 1))
+        lo_c = [dr.select(brick, i[a], ((i[a] >> 2) - (k - 1)) * B) for a in range(3)]
+        hi_c = [dr.select(brick, i[a] + 1, ((i[a] >> 2) + k) * B) for a in range(3)]
+        return hit, self._exit(t, lo_c, hi_c, out), UInt32(v - 1) * 64 + bit, inside
+
+    def _exit(self, t, lo_c, hi_c, out, t_min=None):
+        """Where the ray at t leaves the box of cells [lo_c, hi_c) (three
+        Int32 each; faces marked ``out`` ignored), at least t_min, and past
+        t by the nudge: rounding must never stall a ray."""
+        import drjit as dr
+        Float = type(t)
+        g, o, d = self.g, self.o, self.d
         t_out = Float(dr.inf)
         for a in range(3):
-            lo_c = dr.select(brick, i[a], ((i[a] >> 2) - (k - 1)) * B)
-            hi_c = dr.select(brick, i[a] + 1, ((i[a] >> 2) + k) * B)
-            face = Float(dr.select(d[a] > 0, hi_c, lo_c)) * g.cell[a]
+            face = Float(dr.select(d[a] > 0, hi_c[a], lo_c[a])) * g.cell[a]
             t_a = dr.select((d[a] == 0) | out[a], dr.inf, (face - o[a]) * self.inv_d[a])
             t_out = dr.minimum(t_out, t_a)
-        # rounding must never stall a ray
-        t_out = dr.maximum(t_out, t + dr.maximum(self.t_nudge, dr.abs(t) * 2.0**-22))
-        return hit, t_out, UInt32(v - 1) * 64 + bit, inside
+        if t_min is not None:
+            t_out = dr.maximum(t_out, t_min)
+        return dr.maximum(t_out, t + dr.maximum(self.t_nudge, dr.abs(t) * 2.0**-22))
 
     def _dense_step(self, t, i, out, inside):
         """The step through the dense table: one gather. From an empty cell
@@ -350,22 +354,15 @@ class Walker:
         of t, more than its rounding), or to the cell's exit where that is
         further."""
         import drjit as dr
-        g, o, d = self.g, self.o, self.d
+        g = self.g
         Float = type(t)
         UInt32 = dr.uint32_array_t(Float)
         R = g.R
         v = dr.gather(type(i[0]), g.table, UInt32((i[2] * R + i[1]) * R + i[0]), inside)
         hit = inside & (v >= 0)
-        t_out = Float(dr.inf)
-        for a in range(3):
-            face = Float(dr.select(d[a] > 0, i[a] + 1, i[a])) * g.cell[a]
-            t_a = dr.select((d[a] == 0) | out[a], dr.inf, (face - o[a]) * self.inv_d[a])
-            t_out = dr.minimum(t_out, t_a)
         skip = t + Float(-1 - v) * self.q_t
         skip = skip - dr.abs(skip) * 2.0**-20
-        t_out = dr.maximum(t_out, dr.select(hit, -dr.inf, skip))
-        # rounding must never stall a ray
-        t_out = dr.maximum(t_out, t + dr.maximum(self.t_nudge, dr.abs(t) * 2.0**-22))
+        t_out = self._exit(t, i, [c + 1 for c in i], out, dr.select(hit, -dr.inf, skip))
         return hit, t_out, UInt32(v), inside
 
     def next(self, t, active, run: int = 1):

@@ -695,7 +695,7 @@ class _Evaluator:
         empty = active & (excluded | (monotone & (s_m != 0) & (s_a == s_m) & (s_b == s_m)))
         bracket = active & ~empty & (left | right | whole)
         return _Test(
-            tm=tm, r=r, F=F, eF=eF, g=g, s_m=s_m, empty=empty, bracket=bracket,
+            r=r, s_m=s_m, empty=empty, bracket=bracket,
             open=active & ~empty & ~bracket,
             # the bracket: the left half, the right half or the whole, and
             # its left end's sign
@@ -710,11 +710,7 @@ class _Evaluator:
 @dataclass
 class _Test:
     """The outcome of one interval test (Dr.Jit arrays per lane)."""
-    tm: object           # Float64: the middle
     r: object            # Float: half width (rounded outward)
-    F: object            # Float64: F(tm), its error bound eF, g(tm)
-    eF: object
-    g: object
     s_m: object          # Int32: sign of F(tm) outside its error bound (0: unknown)
     empty: object        # Bool: no root in the interval
     bracket: object      # Bool: exactly one root, in [b_lo, b_hi]
