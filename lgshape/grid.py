@@ -138,12 +138,11 @@ class DeviceGrid:
       and -k for empty ones, where k is the chessboard distance (in bricks,
       at most MAX_SKIP) to the nearest occupied brick: the (2k - 1)^3 bricks
       around an empty one are all empty, so a ray crosses them in one step.
-    - Up to :data:`DENSE_MAX_DEPTH`, also a dense table of every fine cell
-      (:func:`dense_table`), which the walk reads with one gather per step
-      (on the CPUs measured, a gather costs about as much as a whole
-      evaluation of a small f) and whose distances let it skip empty space
-      in any direction. Finer grids walk the brick map, which stays in
-      cache."""
+    - Up to :data:`DENSE_MAX_DEPTH`, also a dense table of every fine cell,
+      a byte each (:func:`dense_table`), which the walk reads with one
+      gather per step (on the CPUs measured, a gather costs about as much
+      as a whole evaluation of a small f) and whose rings let it skip empty
+      space in any direction. Finer grids walk the brick map."""
 
     def __init__(self, grid: PruningGrid, Float):
         import drjit as dr
@@ -155,18 +154,17 @@ class DeviceGrid:
         self.cell = [dr.opaque(Float, float(v)) for v in grid.cell_size]
         self.dense = grid.depth <= DENSE_MAX_DEPTH
         if self.dense:
-            table, q = dense_table(grid)
-            self.table = Int32(table)
-            self.q = dr.opaque(Float, q)
+            self.table = UInt32(dense_table(grid))
 
 
-#: The dense walk table is built up to this depth (64^3 cells, 1 MB).
-#: Measured on the scale section's union of spheres: at depth 7 as fast as
-#: the brick map, and its distance transform took 0.4 s of the first frame;
-#: at depth 8 (64 MB, out of cache) 1.5x slower than the brick map.
-DENSE_MAX_DEPTH = 6
-#: Units of the stored distances, in the smallest cell size.
-DIST_UNITS = 16
+#: The dense walk table is built up to this depth (256^3 cells, 16 MB; 256 kB
+#: at depth 6). Measured against the brick map, union of N spheres, 512^2
+#: camera rays: depth 7 (N = 1000) 85 -> 76 ms, depth 8 (N = 10000) 160 ->
+#: 141 ms. With 4 bytes a cell (the slot, and a Euclidean distance bound)
+#: the table was 1.5x slower than the brick map at depth 8.
+DENSE_MAX_DEPTH = 8
+#: The largest ring count of the dense table (a byte per cell).
+MAX_RINGS = 254
 
 
 def cell_slots(grid: PruningGrid, cells) -> np.ndarray:
@@ -176,31 +174,27 @@ def cell_slots(grid: PruningGrid, cells) -> np.ndarray:
     return (grid.top[b].astype(np.int64) - 1) * 64 + bit
 
 
-def dense_table(grid: PruningGrid):
-    """(table, q): an int32 per fine cell, index (k R + j) R + i. Occupied
-    cells hold their slot (>= 0); an empty cell holds -(m + 1), where m q is
-    a lower bound of the distance from any point of the cell to any occupied
-    cell: from the Euclidean distance transform of the cell centres (scipy),
-    less a cell's diagonal (a point and a cell each lie within half a
-    diagonal of their centres) and INFLATE of a cell, rounded down."""
+def dense_rings(grid: PruningGrid) -> np.ndarray:
+    """A byte per fine cell, [k, j, i]: 0 for an occupied cell, 1 + k for
+    an empty one, where the cells i - k .. i + k on every axis are all empty
+    (the chessboard distance transform to the occupied cells, less one;
+    scipy), at most MAX_RINGS."""
     from scipy import ndimage
     R = grid.resolution
     cells = grid.cells.astype(np.int64)
-    occ = np.zeros((R, R, R), bool)                 # [k, j, i]
+    occ = np.zeros((R, R, R), bool)
     occ[cells[:, 2], cells[:, 1], cells[:, 0]] = True
-    size = grid.cell_size                            # (x, y, z)
-    cell_min = float(size.min())
-    q = cell_min / DIST_UNITS
-    cap = 2 ** 30
     if occ.any():
-        edt = ndimage.distance_transform_edt(~occ, sampling=(size[2], size[1], size[0]))
-        dist = edt - float(np.linalg.norm(size)) - INFLATE * cell_min
-        m = np.minimum(np.floor(np.clip(dist, 0, None) / q), cap).astype(np.int64)
+        k = ndimage.distance_transform_cdt(~occ, metric="chessboard") - 1
     else:
-        m = np.full(occ.shape, cap, np.int64)
-    table = (-(m + 1)).astype(np.int32)
-    table[cells[:, 2], cells[:, 1], cells[:, 0]] = cell_slots(grid, grid.cells)
-    return table.reshape(-1), q
+        k = np.full(occ.shape, MAX_RINGS)
+    return np.where(occ, 0, 1 + np.clip(k, 0, MAX_RINGS)).astype(np.uint8)
+
+
+def dense_table(grid: PruningGrid) -> np.ndarray:
+    """:func:`dense_rings` packed four cells to a uint32 (cell index
+    (k R + j) R + i, byte i mod 4): the walk reads it with one gather."""
+    return np.ascontiguousarray(dense_rings(grid).reshape(-1)).view(np.uint32).copy()
 
 
 MAX_SKIP = 8
@@ -288,9 +282,9 @@ class Walker:
     per-ray constants computed once (a search calls :meth:`next` once per
     cell, inside its own loop)."""
 
-    def __init__(self, g: DeviceGrid, o, d, t_end):
+    def __init__(self, g: DeviceGrid, o, d, t_end, slots: bool = True):
         import drjit as dr
-        self.g, self.o, self.d, self.t_end = g, o, d, t_end
+        self.g, self.o, self.d, self.t_end, self.slots = g, o, d, t_end, slots
         R = g.R
         cell_min = dr.minimum(dr.minimum(g.cell[0], g.cell[1]), g.cell[2])
         dlen = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
@@ -302,8 +296,6 @@ class Walker:
         self.inv_cell = [1.0 / g.cell[a] for a in range(3)]
         self.inv_d = [dr.select(d[a] == 0, 0.0, 1.0 / d[a]) for a in range(3)]
         self.max_steps = 4 * R + 16
-        if g.dense:     # a distance in space -> in t
-            self.q_t = g.q / dr.select(dlen > 0, dlen, 1.0)
 
     def step(self, t, active):
         """One step of the DDA from t on the lanes ``active``: (hit, t_out,
@@ -350,20 +342,21 @@ class Walker:
 
     def _dense_step(self, t, i, out, inside):
         """The step through the dense table: one gather. From an empty cell
-        whose distance bound is m q, t moves on by m q / |d| (shrunk by 2^-20
-        of t, more than its rounding), or to the cell's exit where that is
-        further."""
+        with k empty rings around it (:func:`dense_rings`), t moves on to
+        where the ray leaves the cube of cells i - k .. i + k. The slot of
+        an occupied cell is not read here (see :meth:`next`)."""
         import drjit as dr
         g = self.g
         Float = type(t)
         UInt32 = dr.uint32_array_t(Float)
         R = g.R
-        v = dr.gather(type(i[0]), g.table, UInt32((i[2] * R + i[1]) * R + i[0]), inside)
-        hit = inside & (v >= 0)
-        skip = t + Float(-1 - v) * self.q_t
-        skip = skip - dr.abs(skip) * 2.0**-20
-        t_out = self._exit(t, i, [c + 1 for c in i], out, dr.select(hit, -dr.inf, skip))
-        return hit, t_out, UInt32(v), inside
+        c = UInt32((i[2] * R + i[1]) * R + i[0])
+        w = dr.gather(UInt32, g.table, c >> 2, inside)
+        b = type(i[0])((w >> ((c & 3) << 3)) & 255)
+        hit = inside & (b == 0)
+        k = dr.maximum(b - 1, 0)
+        t_out = self._exit(t, [a - k for a in i], [a + k + 1 for a in i], out)
+        return hit, t_out, dr.zeros(UInt32, dr.width(t)), inside
 
     def next(self, t, active, run: int = 1):
         """(found, t_enter, t_exit, stuck, slot), see :func:`next_occupied`.
@@ -399,7 +392,22 @@ class Walker:
                    dr.zeros(Int32, n)),
             cond=lambda t, active, *_: active, body=body, label="lgshape_dda")
         stuck = ~found & (steps >= max_steps) & (t_in <= self.t_end)
+        if self.g.dense and self.slots:
+            # the first cell's slot, from the brick map (the dense table
+            # holds none): the cell at t_enter, found as in step()
+            slot = self.slot_at(t_enter, found)
         return found, dr.select(found, t_enter, t_in), t_exit, stuck, slot
+
+    def slot_at(self, t, active):
+        """The brick-map slot of the (occupied) cell the ray is in at t."""
+        import drjit as dr
+        Int32 = dr.int32_array_t(type(t))
+        UInt32 = dr.uint32_array_t(type(t))
+        R = self.g.R
+        i = [dr.clip(Int32(dr.floor(dr.fma(t, self.d[a], self.o[a]) * self.inv_cell[a]
+                                    + self.shift[a])), 0, R - 1) for a in range(3)]
+        v, _, bit, _ = _cell_lookup(self.g, i, active)
+        return UInt32(v - 1) * 64 + bit
 
 
 def slot_at(g: DeviceGrid, p):

@@ -311,9 +311,9 @@ class Surface:
     @property
     def memory_bytes(self) -> int:
         """Size of the pruning structure: the brick map, and the walk's
-        dense table up to :data:`lgshape.grid.DENSE_MAX_DEPTH` (4 bytes a
+        dense table up to :data:`lgshape.grid.DENSE_MAX_DEPTH` (a byte a
         fine cell)."""
-        dense = 4 * self.grid.resolution ** 3 if self.depth <= gridmod.DENSE_MAX_DEPTH else 0
+        dense = self.grid.resolution ** 3 if self.depth <= gridmod.DENSE_MAX_DEPTH else 0
         return self.grid.nbytes + dense
 
     def global_G(self) -> float:
@@ -858,7 +858,8 @@ def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
     :func:`_step`, the search's decision. Ends with a hit, a bracket to
     refine, no root or the cap."""
     import drjit as dr
-    walker = gridmod.Walker(ev.K.grid, ev.rays.g_org, ev.rays.d32, ev.rays.span)
+    walker = gridmod.Walker(ev.K.grid, ev.rays.g_org, ev.rays.d32, ev.rays.span,
+                             slots=ev.tabled)
 
     def body(*state):
         lane = _Lane(*state)

@@ -80,30 +80,30 @@ def test05_bad_depth():
 
 
 @pytest.mark.parametrize("name,depth", [("torus", 5), ("tangle", 6), ("sphere", 6)])
-def test06_dense_table_distances_are_lower_bounds(name, depth, rng):
-    """The walk's dense table: occupied cells hold their slot,
-    empty ones a distance bound m q. Oracle: the exact distance, in float64,
-    from random points of empty cells to the nearest occupied cell box
-    (brute force over all occupied cells) is never below m q; and the bound
-    is useful (above a cell for most far cells)."""
+def test06_dense_table_rings(name, depth, rng):
+    """The walk's dense table: a byte per cell, 0 for the occupied cells,
+    1 + k for an empty one, packed four to a uint32. Oracle: brute force
+    over all occupied cells: an empty cell's chessboard distance (in cells)
+    to the nearest occupied cell is exactly k + 1 (so the cube of cells
+    i - k .. i + k is empty and the next ring is not)."""
     spec = LIBRARY[name]()
     g = G.build(spec.expr, *spec.bbox, depth=depth)
-    table, q = G.dense_table(g)
     R = g.resolution
-    T = table.reshape(R, R, R)
+    rings = G.dense_rings(g)
+    packed = G.dense_table(g)
+    assert packed.dtype == np.uint32 and len(packed) * 4 == R ** 3
+    cell = rng.integers(0, R ** 3, 500)
+    assert np.array_equal((packed[cell >> 2] >> ((cell & 3) * 8)) & 255, rings.reshape(-1)[cell])
     c = g.cells.astype(int)
-    assert np.array_equal(T[c[:, 2], c[:, 1], c[:, 0]], G.cell_slots(g, g.cells))
-    assert np.all(G.cell_slots(g, g.cells) >= 0)
-    empty = np.argwhere(T < 0)[:, ::-1]                       # (i, j, k)
-    pick = empty[rng.choice(len(empty), size=min(150, len(empty)), replace=False)]
-    p = g.lo + (pick + rng.uniform(0, 1, pick.shape)) * g.cell_size
-    lo_o, hi_o = g.lo + c * g.cell_size, g.lo + (c + 1) * g.cell_size
-    gap = np.maximum(np.maximum(lo_o[None] - p[:, None], p[:, None] - hi_o[None]), 0)
-    dist = np.sqrt((gap ** 2).sum(-1)).min(1)
-    bound = (-1 - T[pick[:, 2], pick[:, 1], pick[:, 0]].astype(np.int64)) * q
-    assert np.all(bound <= dist), float((bound - dist).max())
-    far = dist > 4 * g.cell_size.max()
-    assert far.any() and np.mean(bound[far] > g.cell_size.min()) > 0.9
+    occ = np.zeros((R, R, R), bool)
+    occ[c[:, 2], c[:, 1], c[:, 0]] = True
+    assert np.array_equal(rings == 0, occ)
+    empty = np.argwhere(rings > 0)[:, ::-1]                    # (i, j, k)
+    pick = empty[rng.choice(len(empty), size=min(400, len(empty)), replace=False)]
+    k = rings[pick[:, 2], pick[:, 1], pick[:, 0]].astype(int) - 1
+    cheb = np.abs(c[None, :, :] - pick[:, None, :]).max(-1).min(1)
+    assert np.array_equal(k + 1, np.minimum(cheb, G.MAX_RINGS + 1))
+    assert (k >= 2).any()                       # the rings skip empty space
 
 
 @pytest.mark.parametrize("dense,run", [(True, 1), (False, 1), (True, 3)])
