@@ -192,9 +192,22 @@ def dense_rings(grid: PruningGrid) -> np.ndarray:
 
 
 def dense_table(grid: PruningGrid) -> np.ndarray:
-    """:func:`dense_rings` packed four cells to a uint32 (cell index
-    (k R + j) R + i, byte i mod 4): the walk reads it with one gather."""
-    return np.ascontiguousarray(dense_rings(grid).reshape(-1)).view(np.uint32).copy()
+    """:func:`dense_rings` in bricks of 4^3 cells, 64 bytes each (a cache
+    line: the cells near a ray's path, and near its neighbours', share
+    lines), packed four cells to a uint32: see :func:`dense_index`."""
+    R, nb = grid.resolution, grid.resolution // BRICK
+    b = dense_rings(grid).reshape(nb, BRICK, nb, BRICK, nb, BRICK)   # [K, k, J, j, I, i]
+    b = b.transpose(0, 2, 4, 1, 3, 5)                                 # [K, J, I, k, j, i]
+    return np.ascontiguousarray(b).reshape(-1).view(np.uint32).copy()
+
+
+def dense_index(i, R: int):
+    """The byte of fine cell i (three integer arrays, numpy or Dr.Jit) in
+    :func:`dense_table`: ((K nb + J) nb + I) 64 + (k 4 + j) 4 + i, with
+    (I, i) = divmod(i, 4) per axis."""
+    nb = R // BRICK
+    brick = ((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2)
+    return brick * 64 + (((i[2] & 3) << 4) | ((i[1] & 3) << 2) | (i[0] & 3))
 
 
 MAX_SKIP = 8
@@ -350,7 +363,7 @@ class Walker:
         Float = type(t)
         UInt32 = dr.uint32_array_t(Float)
         R = g.R
-        c = UInt32((i[2] * R + i[1]) * R + i[0])
+        c = UInt32(dense_index(i, R))
         w = dr.gather(UInt32, g.table, c >> 2, inside)
         b = type(i[0])((w >> ((c & 3) << 3)) & 255)
         hit = inside & (b == 0)

@@ -82,7 +82,8 @@ def test05_bad_depth():
 @pytest.mark.parametrize("name,depth", [("torus", 5), ("tangle", 6), ("sphere", 6)])
 def test06_dense_table_rings(name, depth, rng):
     """The walk's dense table: a byte per cell, 0 for the occupied cells,
-    1 + k for an empty one, packed four to a uint32. Oracle: brute force
+    1 + k for an empty one, in bricks of 4^3 cells, packed four to a
+    uint32. Oracle: brute force
     over all occupied cells: an empty cell's chessboard distance (in cells)
     to the nearest occupied cell is exactly k + 1 (so the cube of cells
     i - k .. i + k is empty and the next ring is not)."""
@@ -92,8 +93,12 @@ def test06_dense_table_rings(name, depth, rng):
     rings = G.dense_rings(g)
     packed = G.dense_table(g)
     assert packed.dtype == np.uint32 and len(packed) * 4 == R ** 3
-    cell = rng.integers(0, R ** 3, 500)
-    assert np.array_equal((packed[cell >> 2] >> ((cell & 3) * 8)) & 255, rings.reshape(-1)[cell])
+    ijk = rng.integers(0, R, (500, 3))
+    c = G.dense_index([ijk[:, 0], ijk[:, 1], ijk[:, 2]], R)
+    assert np.array_equal((packed[c >> 2] >> ((c & 3) * 8)) & 255,
+                          rings[ijk[:, 2], ijk[:, 1], ijk[:, 0]])
+    assert np.array_equal(np.sort(G.dense_index(np.indices((R, R, R)).reshape(3, -1), R)),
+                          np.arange(R ** 3))                 # one byte per cell
     c = g.cells.astype(int)
     occ = np.zeros((R, R, R), bool)
     occ[c[:, 2], c[:, 1], c[:, 0]] = True
