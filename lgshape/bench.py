@@ -52,6 +52,7 @@ import numpy as np
 from . import stability
 from .camera import primary_rays
 from .surfaces import LIBRARY
+from .trace import DEFAULT_DEPTH
 
 VARIANT = "llvm_ad_rgb"
 
@@ -63,7 +64,7 @@ class Config:
     repeats: int                   # timed runs (after one warm-up)
     surfaces: tuple
     depths: tuple                  # lgshape interval-mode pruning depths
-    modes: tuple                   # further lgshape settings at depth 6
+    modes: tuple                   # further lgshape settings at the default depth
     st_eps: tuple                  # sphere-tracing thresholds, in box diagonals
     march_steps: tuple             # fixed steps, as divisions of the diagonal
     grid_res: tuple                # sdfgrid / marching-cubes samples per axis
@@ -73,17 +74,18 @@ class Config:
     min_sample: float              # seconds per timing sample (repeated traces)
 
 
-FULL = Config(res=512, stride=2, repeats=5, surfaces=tuple(LIBRARY), depths=(5, 6, 7),
+FULL = Config(res=512, stride=2, repeats=5, surfaces=tuple(LIBRARY), depths=(6, 7, 8),
               modes=("taylor", "global", "seed"), st_eps=(1e-3, 1e-4, 1e-5, 1e-6),
               march_steps=(64, 256, 1024), grid_res=(32, 64, 128, 256), scan_steps=8192,
               stability_scale=1.0, stability_grid=128, min_sample=0.1)
 QUICK = Config(res=64, stride=1, repeats=3, surfaces=tuple(LIBRARY),
-               depths=(6,), modes=("seed",), st_eps=(1e-3, 1e-5), march_steps=(64, 256),
+               depths=(DEFAULT_DEPTH,), modes=("seed",), st_eps=(1e-3, 1e-5),
+               march_steps=(64, 256),
                grid_res=(32, 64), scan_steps=2048, stability_scale=0.5, stability_grid=64,
                min_sample=0.02)
 
 #: The lgshape setting the headline compares (the library's default).
-DEFAULT_LG = "interval, depth 6"
+DEFAULT_LG = f"interval, depth {DEFAULT_DEPTH}"
 
 
 # ---- Methods ------------------------------------------------------------------
@@ -328,7 +330,7 @@ def runners(spec, rays, cfg: Config):
     for depth in cfg.depths:
         yield lambda depth=depth: lgshape_runner(spec, rays, "interval", depth)
     for mode in cfg.modes:
-        yield lambda mode=mode: lgshape_runner(spec, rays, mode, 6)
+        yield lambda mode=mode: lgshape_runner(spec, rays, mode, DEFAULT_DEPTH)
     for relax in (1.0, 1.6):
         for eps in cfg.st_eps:
             yield lambda eps=eps, relax=relax: sphere_runner(spec, rays, eps, relax)
@@ -345,9 +347,9 @@ def _seed_runner(spec, rays):
     (a pole, a sqrt at the edge of its domain), a record of its refusal: no
     hits, no ray capped, and the reason in ``note``."""
     try:
-        return lgshape_runner(spec, rays, "seed", 6, t64=True)
+        return lgshape_runner(spec, rays, "seed", DEFAULT_DEPTH, t64=True)
     except ValueError as err:
-        return _empty_runner("lgshape_global", "global L and G, depth 6", rays, 0.0,
+        return _empty_runner("lgshape_global", f"global L and G, depth {DEFAULT_DEPTH}", rays, 0.0,
                              f"refused: {err}", has_cap=True)
 
 
@@ -356,8 +358,8 @@ def stability_runners(spec, rays, cfg: Config, L=None):
     (``L``: a known Lipschitz bound for sphere tracing, see
     :attr:`stability.Case.lipschitz`)."""
     samples = Samples(spec, cfg.stability_grid)
-    yield lambda: lgshape_runner(spec, rays, "interval", 6, t64=True)
-    yield lambda: lgshape_runner(spec, rays, "taylor", 6, t64=True)
+    yield lambda: lgshape_runner(spec, rays, "interval", DEFAULT_DEPTH, t64=True)
+    yield lambda: lgshape_runner(spec, rays, "taylor", DEFAULT_DEPTH, t64=True)
     yield lambda: _seed_runner(spec, rays)
     yield lambda: sphere_runner(spec, rays, 1e-5, 1.0, L)
     yield lambda: sphere_runner(spec, rays, 1e-5, 1.6, L)
@@ -686,7 +688,7 @@ def report(results, command, written) -> str:
              "error in box diagonals over the pixels both hit; normal error is the angle between "
              "normal lines (orientation ignored), mean over those pixels.")
     L.append("- Memory: the acceleration structure only: lgshape's brick map and, up to depth "
-             "8, its walk's dense table (a byte a cell: 256 kB at depth 6); sdfgrid's samples "
+             "8, its walk's dense table (a byte a cell: 2 MB at depth 7); sdfgrid's samples "
              "(float32); the mesh's vertex, normal and index buffers (Embree's BVH and "
              "sdfgrid's per-voxel boxes, internal to Mitsuba, not included). Sphere tracing "
              "and marching keep none.\n")
