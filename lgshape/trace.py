@@ -141,21 +141,26 @@ def _check_int(name, v, lo, hi):
     return int(v)
 
 
-#: The pruning depth of a plain expression. Measured with the dense walk
-#: (512^2 camera rays, 2 cores): against depth 6, 14-25% faster on tangle,
-#: the Barth sextic, Kummer, chmutov6, Clebsch, blobs, spikes; the same on
-#: the torus and gyroid; 4% slower on the sphere. Its build takes 0.05-1.8 s
-#: (chmutov6 the longest).
+#: The pruning depth of a plain expression of at most DEEP_MAX_NODES nodes
+#: (6 for larger ones, whose build at depth 7 would take seconds and
+#: gigabytes: the whole union of 100 spheres took 28 s and 5 GB). Measured
+#: with the dense walk (512^2 camera rays, 2 cores): against depth 6, 14-25%
+#: faster on tangle, the Barth sextic, Kummer, chmutov6, Clebsch, blobs,
+#: spikes; the same on the torus and gyroid; 4% slower on the sphere. Its
+#: build takes 0.05-2 s (chmutov6 the longest).
 DEFAULT_DEPTH = 7
+DEEP_MAX_NODES = 128
 
 
-def _default_depth(tables) -> int:
-    """:data:`DEFAULT_DEPTH`; for a table form, 6 and finer with more rows
-    (7 from 300 rows, 8 from 3000), which keeps about one row per cell where
-    primitives are dense (measured in the benchmark's scale section)."""
+def _default_depth(tables, f=None) -> int:
+    """:data:`DEFAULT_DEPTH` for a plain expression f of at most
+    :data:`DEEP_MAX_NODES` nodes, else 6; for a table form, 6 and finer
+    with more rows (7 from 300 rows, 8 from 3000), which keeps about one row
+    per cell where primitives are dense (measured in the benchmark's scale
+    section)."""
     if tables is not None:
         return 6 + (tables.rows >= 300) + (tables.rows >= 3000)
-    return DEFAULT_DEPTH
+    return DEFAULT_DEPTH if f is None or f.size() <= DEEP_MAX_NODES else 6
 
 
 def _sample_points(lo, hi, n=CHECK_SAMPLES, seed=0):
@@ -180,7 +185,8 @@ class Surface:
     checked against |grad f| and the Hessian's norm at sampled points and
     refused, naming the point, where they are too small. ``depth``: the
     pruning depth, an integer from 2 to 10 (2**depth cells per axis; default
-    :data:`DEFAULT_DEPTH` = 7; for tables 6 to 8, see :func:`_default_depth`).
+    :data:`DEFAULT_DEPTH` = 7, 6 for expressions of over 128 nodes; for
+    tables 6 to 8, see :func:`_default_depth`).
     ``search``: how ray intervals are bounded, see :data:`SEARCH_MODES`
     (default ``"interval"``, or ``"global"`` when ``G`` is given).
     ``max_iterations``: the per-ray bound on search steps.
@@ -233,7 +239,8 @@ class Surface:
         self.tables = f if isinstance(f, TableForm) else \
             (find_tables(f) if tables and not fused_only else None)
         self._expr = None if isinstance(f, TableForm) else f
-        self.depth = _check_int("depth", _default_depth(self.tables) if depth is None else depth,
+        self.depth = _check_int("depth", _default_depth(self.tables, self._expr)
+                                if depth is None else depth,
                                 2, 10)
         self.lo, self.hi = lo, hi
         if self.tables is not None and (L is not None or G is not None or search != "interval"):

@@ -89,8 +89,8 @@ class LGSurface(mi.Mesh):
          :class:`lgshape.Surface`). By default both are computed.
      * - depth
        - |int|
-       - Pruning depth: 2^depth cells per axis, 2 to 10. (Default: 7; for many
-         primitives 6 to 8 by their number)
+       - Pruning depth: 2^depth cells per axis, 2 to 10. (Default: 7; 6 for
+         expressions of over 128 nodes; for many primitives 6 to 8 by their number)
      * - to_world
        - |transform|
        - Any affine object-to-world transform. The ray search runs in object

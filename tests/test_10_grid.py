@@ -165,3 +165,17 @@ def test07_walk_visits_every_cell_a_line_crosses(dense, run, rng, monkeypatch):
         covered = ((ts[:, None] >= seg[None, :, 0] - slack)
                    & (ts[:, None] <= seg[None, :, 1] + slack)).any(1)
         assert np.all(covered[inside_occ]), (r, ts[inside_occ & ~covered][:5], seg)
+
+
+def test08_default_depth_by_expression_size():
+    """A small expression is pruned at DEFAULT_DEPTH (7), one of over
+    DEEP_MAX_NODES nodes at 6 (its build at 7 costs seconds), a given depth
+    is kept."""
+    import lgshape
+    from lgshape import trace as T
+    small = lgshape.Surface(LIBRARY["torus"]())
+    assert small.depth == T.DEFAULT_DEPTH == 7
+    terms = " + ".join(f"1/(1 + {k + 2}*((x - {k / 40:.3f})^2 + y^2 + z^2))" for k in range(20))
+    big = lgshape.Surface(f"0.5 - ({terms})", ((-1,) * 3, (1,) * 3), tables=False)
+    assert big.expr.size() > T.DEEP_MAX_NODES and big.depth == 6
+    assert lgshape.Surface(LIBRARY["torus"](), depth=5).depth == 5
