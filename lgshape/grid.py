@@ -157,11 +157,12 @@ class DeviceGrid:
             self.table = UInt32(dense_table(grid))
 
 
-#: The dense walk table is built up to this depth (256^3 cells, 16 MB; 256 kB
-#: at depth 6). Measured against the brick map, union of N spheres, 512^2
-#: camera rays: depth 7 (N = 1000) 85 -> 76 ms, depth 8 (N = 10000) 160 ->
-#: 141 ms. With 4 bytes a cell (the slot, and a Euclidean distance bound)
-#: the table was 1.5x slower than the brick map at depth 8.
+#: The dense walk table is built up to this depth (256^3 cells, 16 MB; 2 MB
+#: at depth 7). Measured against the brick map, 512^2 camera rays: union of
+#: 1000 spheres (depth 7) 85 -> 69-75 ms, of 10000 (depth 8) 160-167 ->
+#: 132-138 ms; blend of 10000 blobs (depth 8) 190-210 -> 174-177 ms. With 4
+#: bytes a cell (the slot, and a Euclidean distance bound) the table was
+#: 1.5x slower than the brick map at depth 8.
 DENSE_MAX_DEPTH = 8
 #: The largest ring count of the dense table (a byte per cell).
 MAX_RINGS = 254
@@ -195,7 +196,7 @@ def dense_table(grid: PruningGrid) -> np.ndarray:
     """:func:`dense_rings` in bricks of 4^3 cells, 64 bytes each (a cache
     line: the cells near a ray's path, and near its neighbours', share
     lines), packed four cells to a uint32: see :func:`dense_index`."""
-    R, nb = grid.resolution, grid.resolution // BRICK
+    nb = grid.resolution // BRICK
     b = dense_rings(grid).reshape(nb, BRICK, nb, BRICK, nb, BRICK)   # [K, k, J, j, I, i]
     b = b.transpose(0, 2, 4, 1, 3, 5)                                 # [K, J, I, k, j, i]
     return np.ascontiguousarray(b).reshape(-1).view(np.uint32).copy()
@@ -310,24 +311,34 @@ class Walker:
         self.inv_d = [dr.select(d[a] == 0, 0.0, 1.0 / d[a]) for a in range(3)]
         self.max_steps = 4 * R + 16
 
+    def _cell(self, t):
+        """The fine cell i of the ray at t (three Int32, located with the
+        nudge) and, per axis, whether t lies past the grid's last face in
+        the direction of travel (within rounding of it: the walk goes on in
+        the boundary cells along that face)."""
+        import drjit as dr
+        Int32 = dr.int32_array_t(type(t))
+        R, d = self.g.R, self.d
+        i, out = [], []
+        for a in range(3):
+            p = dr.fma(t, d[a], self.o[a]) * self.inv_cell[a] + self.shift[a]
+            i.append(dr.clip(Int32(dr.floor(p)), 0, R - 1))
+            out.append(((p >= R) & (d[a] > 0)) | ((p < 0) & (d[a] < 0)))
+        return i, out
+
     def step(self, t, active):
         """One step of the DDA from t on the lanes ``active``: (hit, t_out,
         slot, inside). ``inside``: t had not passed t_end; ``hit``: the cell
-        at t is occupied (its slot in the brick map); ``t_out``: the exit of
-        that cell, or of the cube of empty bricks around it."""
+        at t is occupied (its slot in the brick map; 0 through the dense
+        table, see :meth:`next`); ``t_out``: the exit of that cell, or of
+        the cube of empty cells or bricks around it."""
         import drjit as dr
-        g, o, d = self.g, self.o, self.d
+        g = self.g
         Float = type(t)
-        Int32 = dr.int32_array_t(Float)
         UInt32 = dr.uint32_array_t(Float)
-        B, R = BRICK, g.R
-        i, out, inside = [], [], dr.mask_t(Float)(active) & (t <= self.t_end)
-        for a in range(3):
-            p = dr.fma(t, d[a], o[a]) * self.inv_cell[a] + self.shift[a]
-            i.append(dr.clip(Int32(dr.floor(p)), 0, R - 1))
-            # Past the grid's last face in the direction of travel (within
-            # rounding of it): walk on in the boundary cells along that face.
-            out.append(((p >= R) & (d[a] > 0)) | ((p < 0) & (d[a] < 0)))
+        B = BRICK
+        inside = dr.mask_t(Float)(active) & (t <= self.t_end)
+        i, out = self._cell(t)
         if g.dense:
             return self._dense_step(t, i, out, inside)
         v, brick, bit, hit = _cell_lookup(g, i, inside)
@@ -414,13 +425,8 @@ class Walker:
     def slot_at(self, t, active):
         """The brick-map slot of the (occupied) cell the ray is in at t."""
         import drjit as dr
-        Int32 = dr.int32_array_t(type(t))
-        UInt32 = dr.uint32_array_t(type(t))
-        R = self.g.R
-        i = [dr.clip(Int32(dr.floor(dr.fma(t, self.d[a], self.o[a]) * self.inv_cell[a]
-                                    + self.shift[a])), 0, R - 1) for a in range(3)]
-        v, _, bit, _ = _cell_lookup(self.g, i, active)
-        return UInt32(v - 1) * 64 + bit
+        v, _, bit, _ = _cell_lookup(self.g, self._cell(t)[0], active)
+        return dr.uint32_array_t(type(t))(v - 1) * 64 + bit
 
 
 def slot_at(g: DeviceGrid, p):
