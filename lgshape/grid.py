@@ -348,10 +348,10 @@ class Walker:
         hi_c = [dr.select(brick, i[a] + 1, ((i[a] >> 2) + k) * B) for a in range(3)]
         return hit, self._exit(t, lo_c, hi_c, out), UInt32(v - 1) * 64 + bit, inside
 
-    def _exit(self, t, lo_c, hi_c, out, t_min=None):
+    def _exit(self, t, lo_c, hi_c, out):
         """Where the ray at t leaves the box of cells [lo_c, hi_c) (three
-        Int32 each; faces marked ``out`` ignored), at least t_min, and past
-        t by the nudge: rounding must never stall a ray."""
+        Int32 each; faces marked ``out`` ignored), past t by the nudge:
+        rounding must never stall a ray."""
         import drjit as dr
         Float = type(t)
         g, o, d = self.g, self.o, self.d
@@ -360,8 +360,6 @@ class Walker:
             face = Float(dr.select(d[a] > 0, hi_c[a], lo_c[a])) * g.cell[a]
             t_a = dr.select((d[a] == 0) | out[a], dr.inf, (face - o[a]) * self.inv_d[a])
             t_out = dr.minimum(t_out, t_a)
-        if t_min is not None:
-            t_out = dr.maximum(t_out, t_min)
         return dr.maximum(t_out, t + dr.maximum(self.t_nudge, dr.abs(t) * 2.0**-22))
 
     def _dense_step(self, t, i, out, inside):
@@ -393,12 +391,14 @@ class Walker:
         UInt32 = dr.uint32_array_t(Float)
         Bool = dr.mask_t(Float)
         max_steps = self.max_steps
+        dense = self.g.dense
 
         def body(t, active, found, t_enter, t_exit, steps, slot, cells):
             hit, t_out, cell_slot, inside = self.step(t, active)
             first = hit & ~found
             t_enter = dr.select(first, t, t_enter)
-            slot = dr.select(first, cell_slot, slot)
+            if not dense:       # (the dense table holds no slots: see below)
+                slot = dr.select(first, cell_slot, slot)
             t_exit = dr.select(hit, t_out, t_exit)
             cells = cells + dr.select(hit, 1, 0)
             # a run ends at an empty cell, at its length, or at t_end
@@ -416,7 +416,7 @@ class Walker:
                    dr.zeros(Int32, n)),
             cond=lambda t, active, *_: active, body=body, label="lgshape_dda")
         stuck = ~found & (steps >= max_steps) & (t_in <= self.t_end)
-        if self.g.dense and self.slots:
+        if dense and self.slots:
             # the first cell's slot, from the brick map (the dense table
             # holds none): the cell at t_enter, found as in step()
             slot = self.slot_at(t_enter, found)
