@@ -750,38 +750,38 @@ class DeviceTables:
     # -- both at once ---------------------------------------------------------------
     def point_segment(self, env, err, rng, m64, e32, d32, lo, hi, m):
         """F with its error bound and g = dF/dt at one point (as
-        :meth:`point`, along env's direction), and float32 intervals of g and
-        F over the local segment e + [lo, hi] d, in one loop over the rows:
+        :meth:`point`, along env's direction), and float32 bounds of g and F
+        over the local segment e + [lo, hi] d, in one loop over the rows:
         each row's parameters are gathered once for both (where they are
         exact in float32; a gather costs about as much as a small
-        evaluation). Returns (F, eF, g, (g_lo, g_hi, F_lo, F_hi))."""
+        evaluation). The bounds are the ranges of quadratic forms along the
+        segment (:mod:`lgshape.expr.quadratic`), kept per aggregate across
+        its rows. Returns (F, eF, g, (g_lo, g_hi, F_lo, F_hi))."""
         import drjit as dr
-        from .bounds import segment_env
         from .expr import evaluate, evaluate_interval, evaluate_with_error
+        from .expr.quadratic import Quad, evaluate_quadratic, quad_range
+        from .trace import quad_env
         Float, Float64 = self.Float, self.Float64
         dd = {k: env[k] for k in ("dx", "dy", "dz")}
         env, err = dict(env), dict(err)
         for i, v in enumerate("xyz"):        # local -> global coordinates
             env[v] = env[v] + self.centre64[i]
             err[v] = err.get(v, 0.0) + m64.u * dr.abs(env[v])
-        ienv = segment_env(e32, d32, lo, hi, m)
-        for i, v in enumerate("xyz"):
-            c_lo, c_hi = self.centre32[i]
-            ienv[v] = iv.pad(m, iv.Interval(ienv[v].lo + c_lo, ienv[v].hi + c_hi))
+        seg, qenv0 = quad_env(m, e32, d32, lo, hi, self.centre32)
         n = dr.width(lo)
-        vals, errs, grads, avals, agrads = {}, {}, {}, {}, {}
+        vals, errs, grads, avals, agrads, aq, agq = {}, {}, {}, {}, {}, {}, {}
         for j, agg in enumerate(self.aggregates):
             comb, comb_g = self.combines[j]
             z64, z32 = dr.zeros(Float64, n), dr.zeros(Float, n)
-            state = (z64, Float64(z64), Float64(z64), z32, Float(z32), Float(z32), Float(z32),
-                     dr.full(dr.mask_t(Float), True, n))
+            state = (z64, Float64(z64), Float64(z64)) + tuple(Float(z32) for _ in range(8)) \
+                + (dr.full(dr.mask_t(Float), True, n),)
             for grp, (s, e) in zip(self.groups, rng):
                 if grp.aggregate != j:
                     continue
 
-                def body(i, v, ev, gv, vlo, vhi, glo, ghi, first, grp=grp, comb=comb,
-                         comb_g=comb_g):
-                    penv, perr, qenv = dict(env), dict(err), dict(ienv)
+                def body(i, v, ev, gv, *rest, grp=grp, comb=comb, comb_g=comb_g):
+                    qv, qg, first = Quad(*rest[0:4]), Quad(*rest[4:8]), rest[8]
+                    penv, perr, qenv = dict(env), dict(err), dict(qenv0)
                     for q in range(grp.width):
                         plo, phi = grp.p32[q]
                         a = dr.gather(Float, plo, i)
@@ -796,31 +796,43 @@ class DeviceTables:
                                                  m64, safety=False)
                     cg = evaluate(comb_g, {"a": v, "b": tv, "ga": gv, "gb": tg}, m64)
                     # the segment
-                    iv_, ig = evaluate_interval([grp.template, grp.g], qenv, m)
-                    civ, cig = evaluate_interval([comb, comb_g], {
-                        "a": iv.Interval(vlo, vhi), "b": iv_, "ga": iv.Interval(glo, ghi),
-                        "gb": ig}, m)
+                    tq, tgq = evaluate_quadratic([grp.template, grp.g], qenv, seg)
+                    cq, cgq = evaluate_quadratic([comb, comb_g], {
+                        "a": qv, "b": tq, "ga": qg, "gb": tgq}, seg)
                     f64 = dr.mask_t(Float64)(first)
                     return (i + 1, dr.select(f64, tv, cv), dr.select(f64, te, ce),
                             dr.select(f64, tg, cg),
-                            dr.select(first, iv_.lo, civ.lo), dr.select(first, iv_.hi, civ.hi),
-                            dr.select(first, ig.lo, cig.lo), dr.select(first, ig.hi, cig.hi),
+                            *(dr.select(first, x, y) for x, y in zip(
+                                (tq.c0, tq.c1, tq.c2, tq.R, tgq.c0, tgq.c1, tgq.c2, tgq.R),
+                                (cq.c0, cq.c1, cq.c2, cq.R, cgq.c0, cgq.c1, cgq.c2, cgq.R))),
                             dr.mask_t(Float)(False) & first)
 
                 out = dr.while_loop(state=(s, *state), cond=lambda i, *_, e=e: i < e,
                                     body=body, label="lgshape_rows_both")
                 state = out[1:]
-            v, ev, gv, vlo, vhi, glo, ghi, first = state
+            v, ev, gv, *rest = state
+            first = rest[8]
             ident = COMBINES[agg.op]
             f64 = dr.mask_t(Float64)(first)
             vals[f"A{j}"] = dr.select(f64, ident, v)
             errs[f"A{j}"] = dr.select(f64, 0.0, ev)
             grads[f"gA{j}"] = dr.select(f64, 0.0, gv)
-            avals[f"A{j}"] = iv.Interval(dr.select(first, ident, vlo), dr.select(first, ident, vhi))
-            agrads[f"gA{j}"] = iv.Interval(dr.select(first, 0.0, glo), dr.select(first, 0.0, ghi))
+            aq[f"A{j}"], agq[f"gA{j}"] = Quad(*rest[0:4]), Quad(*rest[4:8])
+            # an aggregate without rows is its identity (maybe infinite):
+            # the outer expression's intervals take it exactly
+            ra, rg = quad_range(seg, aq[f"A{j}"]), quad_range(seg, agq[f"gA{j}"])
+            avals[f"A{j}"] = iv.Interval(dr.select(first, ident, ra.lo),
+                                         dr.select(first, ident, ra.hi))
+            agrads[f"gA{j}"] = iv.Interval(dr.select(first, 0.0, rg.lo),
+                                           dr.select(first, 0.0, rg.hi))
         F, eF = evaluate_with_error(self.outer, {**env, **vals}, {**err, **errs}, m64)
         g = evaluate(self.outer_g, {**env, **vals, **dd, **grads}, m64)
-        Fi, gi = evaluate_interval([self.outer, self.outer_g], {**ienv, **avals, **agrads}, m)
+        if self.outer.op == "var":       # F is one aggregate: its range
+            Fi, gi = avals[self.outer.param], agrads["g" + self.outer.param]
+        else:
+            ienv = {v: quad_range(seg, qenv0[v]) for v in "xyz"}
+            ienv.update({k: qenv0[k] for k in ("dx", "dy", "dz")})
+            Fi, gi = evaluate_interval([self.outer, self.outer_g], {**ienv, **avals, **agrads}, m)
         return F, eF, g, (gi.lo, gi.hi, Fi.lo, Fi.hi)
 
 

@@ -76,6 +76,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from . import bounds, grid as gridmod
+from .expr.quadratic import Segment, coordinate, evaluate_quadratic, quad_range
 from .arraymath import NUMPY, DrJitMath
 from .expr import (Expr, evaluate, evaluate_with_error, gradient, hessian, parse,
                    ray_derivatives)
@@ -544,6 +545,21 @@ WALKING, NONE, BRACKET, HIT, CAPPED = range(5)
 #: test |g(t_m)| > G r needs short intervals: over runs, some simple roots
 #: were only decided at the minimum width.
 CELL_RUN = 3
+import os as _os
+QUADS = _os.environ.get("LG_QUADS", "1") == "1"
+
+
+def quad_env(m, e32, d32, lo, hi, offsets=None):
+    """The segment e + [lo, hi] d as quadratic forms of its coordinates
+    about its float32 middle (:mod:`lgshape.expr.quadratic`), and the plain
+    direction."""
+    tm = 0.5 * (lo + hi)
+    r = m.maximum(tm - lo, hi - tm) * (1.0 + 4.0 * m.u)
+    seg = Segment(m, r)
+    env = {v: coordinate(seg, e32[i], d32[i], tm, None if offsets is None else offsets[i])
+           for i, v in enumerate("xyz")}
+    env.update({"d" + v: d32[i] for i, v in enumerate("xyz")})
+    return seg, env
 
 
 @dataclass
@@ -627,6 +643,16 @@ class _Evaluator:
         table form's come from :meth:`point_and_bounds`)."""
         dr, K, R = self.dr, self.K, self.rays
         m, Float = K.m, K.m.Float
+        if self.mode == "interval" and QUADS:
+            def true_fn(lo, hi):
+                seg, env = quad_env(m, R.e32, R.d32, lo, hi)
+                Qf, Qg = evaluate_quadratic([self.f, self.ge], env, seg)
+                Fq, gq = quad_range(seg, Qf), quad_range(seg, Qg)
+                return gq.lo, gq.hi, Fq.lo, Fq.hi
+            inf = Float(dr.inf)
+            return dr.if_stmt(args=(lo, hi), cond=need, true_fn=true_fn,
+                              false_fn=lambda lo, hi: (Float(0), Float(0), -inf, inf),
+                              label="lgshape_bounds")
         e = self.ge if self.mode == "interval" else self.he
 
         def true_fn(lo, hi):
@@ -689,8 +715,20 @@ class _Evaluator:
         # evaluated only where the mean-value form fails: undefined points,
         # domain edges, poles, where it also tells whether F is bounded).
         mv_ok = defined & dr.isfinite(mv_lo) & dr.isfinite(mv_hi)
-        need_fi = active & ~mv_ok
-        Fi_lo, Fi_hi = Fn if self.tabled else (Float64(v) for v in self._natural(lo, hi, need_fi))
+        if Fn and not self.tabled:
+            # the quadratic form's range of F; the natural form only where
+            # neither it nor the mean-value form is finite
+            Fq_lo, Fq_hi = Fn
+            q_ok = dr.isfinite(Fq_lo) & dr.isfinite(Fq_hi)
+            mv_lo = dr.select(q_ok, dr.maximum(mv_lo, Fq_lo), mv_lo)
+            mv_hi = dr.select(q_ok, dr.minimum(mv_hi, Fq_hi), mv_hi)
+            need_fi = active & ~mv_ok & ~q_ok
+            Fi_lo, Fi_hi = (Float64(v) for v in self._natural(lo, hi, need_fi))
+            Fi_lo = dr.maximum(Fi_lo, Fq_lo)
+            Fi_hi = dr.minimum(Fi_hi, Fq_hi)
+        else:
+            need_fi = active & ~mv_ok
+            Fi_lo, Fi_hi = Fn if self.tabled else (Float64(v) for v in self._natural(lo, hi, need_fi))
         evals = 1 + dr.select(local, 1, 0) + (0 if self.tabled else dr.select(need_fi, 1, 0))
         F_lo = dr.select(mv_ok, dr.maximum(mv_lo, Fi_lo), Fi_lo)
         F_hi = dr.select(mv_ok, dr.minimum(mv_hi, Fi_hi), Fi_hi)

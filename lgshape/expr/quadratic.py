@@ -1,0 +1,294 @@
+"""Quadratic forms along a ray segment: a tighter enclosure than intervals.
+
+On the segment t = t_m + s, |s| <= r, of a ray, every node of an expression
+gets a :class:`Quad` (c0, c1, c2, R): a quadratic in s and a remainder bound,
+
+    value(t_m + s)  in  c0 + c1 s + c2 s^2 + [-R, R]   for every |s| <= r
+
+(at the points where the node is defined; see :mod:`lgshape.interval` for
+that contract). The coordinates x, y, z are linear in s, so sums and
+products of them stay exact up to degree 2; the terms of degree 3 and 4 of a
+product are bounded over |s| <= r and go to the remainder. The enclosure of
+a polynomial f therefore misses its range by O(r^3), where natural interval
+arithmetic and the mean-value form miss it by O(r) and O(r^2): a ray that
+passes near the surface without crossing it is told apart at a coarser
+split, and a cell it grazes is often excluded in one test.
+
+sin, cos and exp keep the second-order part of their Taylor expansion
+about c0 (:func:`_smooth`) where it is narrower than their interval rule.
+The other ops that are not polynomial (sqrt, log, division by a
+non-constant) take their arguments' ranges (:func:`quad_range`) through
+the interval rules of :mod:`lgshape.interval` and give a constant form;
+min, max and abs keep the form of the argument that provably wins (or its
+sign), else do the same. For a distance such as sqrt((x-a)^2 + ...) - r the
+range is exact up to rounding, since the square sum is exact.
+
+Rounding: the coefficients are computed in the array's precision, rounded
+to nearest; each op adds to R a bound of the rounding of every term it
+computes, ``GAMMA * u`` times the product (or sum) of its arguments'
+magnitudes (the largest value each can take on the segment), which covers
+the few roundings of each coefficient and of R itself. Anything infinite
+or NaN makes the range infinite (:func:`quad_range`): no information, never
+a wrong one.
+"""
+from __future__ import annotations
+
+import math
+
+from .. import interval as iv
+from .node import Expr, topological
+from .ops import OPS
+
+#: Roundings covered per op, in units of ``m.u`` (the unit roundoff with a
+#: factor 2 of margin): a coefficient is a sum of at most three products
+#: (3 roundings), R a sum of at most five (5), with room to spare.
+GAMMA = 16.0
+
+
+class Quad:
+    """c0 + c1 s + c2 s^2 + [-R, R] over |s| <= r (arrays, R >= 0)."""
+    __slots__ = ("c0", "c1", "c2", "R")
+
+    def __init__(self, c0, c1, c2, R):
+        self.c0, self.c1, self.c2, self.R = c0, c1, c2, R
+
+    def __repr__(self):
+        return f"Quad({self.c0}, {self.c1}, {self.c2}, +-{self.R})"
+
+
+class Segment:
+    """The powers of the half width r (rounded up) shared by a whole
+    evaluation, and the array namespace."""
+
+    def __init__(self, m, r):
+        self.m = m
+        up = 1.0 + 4.0 * m.u
+        self.r = r
+        self.r2 = r * r * up
+        self.r3 = self.r2 * r * up
+        self.r4 = self.r2 * self.r2 * up
+        self.g = GAMMA * m.u
+
+    def mag(self, q: Quad):
+        """max |q| over the segment (rounded down by at most a few ulp,
+        which the callers' GAMMA covers)."""
+        m = self.m
+        return m.abs(q.c0) + m.abs(q.c1) * self.r + m.abs(q.c2) * self.r2 + q.R
+
+    def slack(self, M):
+        return self.g * M + self.m.tiny
+
+
+def coordinate(seg: Segment, e, d, tm, offset=None):
+    """The form of a coordinate e + t d (t = tm + s) of the ray, with the
+    rounding of e, of tm d and of their sum (and of an interval ``offset``,
+    e.g. the enclosure of a grid centre) in R."""
+    m = seg.m
+    c0 = e + tm * d
+    R = (m.abs(e) + m.abs(tm * d)) * m.eps + m.tiny
+    if offset is not None:
+        lo, hi = offset
+        mid = 0.5 * (lo + hi)
+        c0 = c0 + mid
+        R = R + (hi - lo) * 0.5 + m.abs(c0) * m.eps + m.tiny
+    return Quad(c0, d, 0.0 * d, R)
+
+
+def from_interval(m, a: iv.Interval) -> Quad:
+    """A constant form covering a (unknown where a is not finite or empty)."""
+    ok = (a.lo <= a.hi) & (a.lo > -math.inf) & (a.hi < math.inf)
+    mid = m.select(ok, 0.5 * (a.lo + a.hi), 0.0)
+    half = 0.5 * (a.hi - a.lo)
+    R = m.select(ok, half + (m.abs(a.lo) + m.abs(a.hi)) * m.eps + m.tiny, math.inf)
+    z = 0.0 * mid
+    return Quad(mid, z, z, R)
+
+
+def _plain(m, v) -> Quad:
+    """A plain (computed) value: rounding padded as :func:`interval.promote`."""
+    z = 0.0 * v
+    return Quad(v, z, z, m.abs(v) * m.eps + m.tiny)
+
+
+def quad_range(seg: Segment, q: Quad) -> iv.Interval:
+    """The interval of q over |s| <= r: the quadratic's values at the ends
+    and at its vertex where it lies inside, widened by R and the rounding.
+    NaN or overflow anywhere gives infinite bounds."""
+    m = seg.m
+    with m.errstate():
+        return _range(seg, q)
+
+
+def _range(seg, q):
+    m, r, r2 = seg.m, seg.r, seg.r2
+    c0, c1, c2 = q.c0, q.c1, q.c2
+    pa = c0 - c1 * r + c2 * r2
+    pb = c0 + c1 * r + c2 * r2
+    lo, hi = m.minimum(pa, pb), m.maximum(pa, pb)
+    inside = m.abs(c1) < 2.0 * m.abs(c2) * r
+    c2s = m.select(c2 != 0, c2, 1.0)
+    pv = c0 - c1 * c1 / (4.0 * c2s)
+    lo = m.select(inside & (c2 > 0), m.minimum(lo, pv), lo)
+    hi = m.select(inside & (c2 < 0), m.maximum(hi, pv), hi)
+    w = q.R + seg.slack(seg.mag(q))
+    lo, hi = lo - w, hi + w
+    return iv.Interval(m.select(m.isnan(lo), -math.inf, lo), m.select(m.isnan(hi), math.inf, hi))
+
+
+def _add(seg, a, b, sign=1.0):
+    c = [a.c0 + sign * b.c0, a.c1 + sign * b.c1, a.c2 + sign * b.c2]
+    return Quad(*c, a.R + b.R + seg.slack(seg.mag(a) + seg.mag(b)))
+
+
+def _scale(seg, k, a, k_err=None):
+    """k a for a plain k (``k_err``: a bound of k's own rounding error)."""
+    m = seg.m
+    ka = m.abs(k)
+    R = ka * a.R + seg.slack(ka * seg.mag(a))
+    if k_err is not None:
+        R = R + k_err * seg.mag(a)
+    return Quad(k * a.c0, k * a.c1, k * a.c2, R)
+
+
+def _mul(seg, a, b):
+    m, r3, r4 = seg.m, seg.r3, seg.r4
+    Ma, Mb = seg.mag(a), seg.mag(b)
+    pa, pb = Ma - a.R, Mb - b.R           # bounds of the quadratic parts
+    high = m.abs(a.c1 * b.c2 + a.c2 * b.c1) * r3 + m.abs(a.c2 * b.c2) * r4
+    R = high + pa * b.R + pb * a.R + a.R * b.R + seg.slack(Ma * Mb)
+    return Quad(a.c0 * b.c0, a.c0 * b.c1 + a.c1 * b.c0, a.c0 * b.c2 + a.c1 * b.c1 + a.c2 * b.c0, R)
+
+
+def _pow(seg, a, n: int):
+    result, base = None, a
+    while n:
+        if n & 1:
+            result = base if result is None else _mul(seg, result, base)
+        n >>= 1
+        if n:
+            base = _mul(seg, base, base)
+    return result
+
+
+def _neg(a):
+    return Quad(-a.c0, -a.c1, -a.c2, a.R)
+
+
+def _select(m, c, a: Quad, b: Quad) -> Quad:
+    return Quad(m.select(c, a.c0, b.c0), m.select(c, a.c1, b.c1), m.select(c, a.c2, b.c2),
+                m.select(c, a.R, b.R))
+
+
+def _via_interval(seg, n: Expr, ranges):
+    """A constant form from the op's interval rule over the arguments'
+    ranges (padded as in :func:`~lgshape.expr.evaluate_interval`)."""
+    m = seg.m
+    op = OPS[n.op]
+    extra = (n.param,) if n.op == "pow" else ()
+    r = op.interval(m, *ranges, *extra)
+    if not op.exact:
+        r = iv.pad(m, r, op.rounding, scale=float(n.param) if n.op == "pow" else 1.0)
+    if op.nonneg:
+        r = iv.nonneg(m, r)
+    return from_interval(m, r)
+
+
+def _smooth(seg: Segment, op: str, a: Quad) -> Quad:
+    """sin, cos or exp of a form. With a = c0 + delta(s),
+    f(c0 + delta) = f(c0) + f1 delta + f2 delta^2 / 2 + f3 delta^3 / 6
+    (f1, f2 the derivatives at c0, f3 the third at a point between): its
+    part of degree <= 2 in s is kept; the rest (the remainder's share of
+    delta, the terms of delta^2 beyond c1^2 s^2, the cubic term with
+    |f3| <= 1 for sin and cos, <= exp(c0 + |delta|) for exp) goes to R,
+    with the error of the library's f (``m.eps_t``)."""
+    m, r, r2 = seg.m, seg.r, seg.r2
+    e2 = m.abs(a.c2) * r2 + a.R                 # |delta - c1 s|
+    D = m.abs(a.c1) * r + e2                    # |delta|
+    dd = 2.0 * m.abs(a.c1) * r * e2 + e2 * e2   # |delta^2 - c1^2 s^2|
+    if op == "exp":
+        f0 = m.exp(a.c0)
+        f1 = f2 = f0
+        M3 = f0 * m.exp(D)
+        ef = m.eps_t * f0
+    else:
+        s, c = m.sin(a.c0), m.cos(a.c0)
+        f0, f1, f2 = (s, c, -s) if op == "sin" else (c, -s, -c)
+        M3 = 1.0
+        ef = 2.0 * m.eps_t
+    c1 = f1 * a.c1
+    c2 = f1 * a.c2 + 0.5 * f2 * (a.c1 * a.c1)
+    R = m.abs(f1) * a.R + 0.5 * m.abs(f2) * dd + M3 * (D * D * D) * (1.0 / 6.0)
+    R = R + ef * (1.0 + D + a.c1 * a.c1 * r2)
+    R = R * (1.0 + seg.g) + seg.slack(m.abs(f0) + m.abs(c1) * r + m.abs(c2) * r2)
+    return Quad(f0, c1, c2, R)
+
+
+def _node(seg: Segment, n: Expr, args):
+    """The form of node n from its arguments' (Quads or plain arrays)."""
+    m = seg.m
+    op = n.op
+    quads = [isinstance(a, Quad) for a in args]
+    if op == "mul" and not quads[0]:
+        return _scale(seg, args[0], args[1], m.abs(args[0]) * m.eps + m.tiny)
+    if op == "mul" and not quads[1]:
+        return _scale(seg, args[1], args[0], m.abs(args[1]) * m.eps + m.tiny)
+    if op == "div" and not quads[1]:
+        k = 1.0 / args[1]
+        return _scale(seg, k, args[0], m.abs(k) * m.eps + m.tiny)
+    q = [a if isinstance(a, Quad) else _plain(m, a) for a in args]
+    if op in ("add", "sub"):
+        return _add(seg, q[0], q[1], 1.0 if op == "add" else -1.0)
+    if op == "neg":
+        return _neg(q[0])
+    if op == "mul":
+        return _mul(seg, q[0], q[1])
+    if op == "pow":
+        return _pow(seg, q[0], n.param)
+    ranges = [quad_range(seg, a) for a in q]
+    fallback = _via_interval(seg, n, ranges)
+    if op in ("min", "max"):
+        a_wins = (ranges[0].hi < ranges[1].lo) if op == "min" else (ranges[0].lo > ranges[1].hi)
+        b_wins = (ranges[1].hi < ranges[0].lo) if op == "min" else (ranges[1].lo > ranges[0].hi)
+        return _select(m, a_wins, q[0], _select(m, b_wins, q[1], fallback))
+    if op in ("sin", "cos", "exp"):
+        # the second-order rule unless it is over twice as wide as the
+        # interval rule (a form composes better: products keep their
+        # correlations)
+        t = _smooth(seg, op, q[0])
+        wide = m.abs(t.c1) * seg.r + m.abs(t.c2) * seg.r2 + t.R
+        return _select(m, wide <= 2.0 * fallback.R, t, fallback)
+    if op == "abs":
+        return _select(m, ranges[0].lo >= 0, q[0], _select(m, ranges[0].hi <= 0, _neg(q[0]),
+                                                            fallback))
+    return fallback
+
+
+def evaluate_quadratic(roots, env: dict, seg: Segment):
+    """Quadratic forms of ``roots`` (an Expr or a list) over the segment.
+
+    ``env`` maps variable names to :class:`Quad` (the coordinates, see
+    :func:`coordinate`), :class:`~lgshape.interval.Interval` (parameters
+    known to a range) or plain arrays (exact values such as the direction).
+    A node whose arguments are all plain stays plain. Returns Quads."""
+    single = isinstance(roots, Expr)
+    roots = [roots] if single else list(roots)
+    m = seg.m
+    memo = {}
+    with m.errstate():
+        for n in topological(roots):
+            if n.op in ("const", "named"):
+                memo[id(n)] = m.const(n.param) if n.op == "const" else m.named(*n.param)
+                continue
+            if n.op == "var":
+                v = env[n.param]
+                memo[id(n)] = from_interval(m, v) if isinstance(v, iv.Interval) else v
+                continue
+            args = [memo[id(a)] for a in n.args]
+            if not any(isinstance(a, Quad) for a in args):
+                extra = (n.param,) if n.op == "pow" else ()
+                memo[id(n)] = OPS[n.op].value(m, *args, *extra)
+                continue
+            memo[id(n)] = _node(seg, n, args)
+    out = [memo[id(r)] if isinstance(memo[id(r)], Quad) else _plain(m, memo[id(r)])
+           for r in roots]
+    return out[0] if single else out
