@@ -147,3 +147,28 @@ def test04_unknowns_are_infinite():
                                                                   np.full(3, 1.0))}, seg)
     r = quad_range(seg, p)
     assert np.all(r.lo == -np.inf) and np.all(r.hi == np.inf)
+
+
+@pytest.mark.parametrize("k", [1e-30, 1e30])
+def test05_scaled_near_tangent(k, rng):
+    """k (x^2 + y^2 + z^2 - 1) on segments of rays passing 1e-4 inside or
+    outside the unit sphere, in float32: the vertex term c1^2 / (4 c2)
+    once underflowed for k = 1e-30 (a near-tangent root excluded). Oracle:
+    sampled float64 values inside the range, no tolerance."""
+    from lgshape.expr import node as N
+    x, y, z = N.var("x"), N.var("y"), N.var("z")
+    f = k * (x * x + y * y + z * z - 1.0)
+    n = 1000
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    d = np.cross(nrm, rng.normal(size=(n, 3)))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = nrm * (1 + rng.choice([-1e-4, 1e-4], n))[:, None] - 0.5 * d
+    a = 0.5 - 10 ** rng.uniform(-4, -1, n)
+    b = 0.5 + 10 ** rng.uniform(-4, -1, n)
+    o, d, a, b = (v.astype(np.float32).astype(np.float64) for v in (o, d, a, b))
+    (lo, hi), = _ranges([f], o, d, a, b, "drjit32")
+    t = a[:, None] + (b - a)[:, None] * np.linspace(0, 1, SAMPLES)[None]
+    v = _values(f, o, d, t)
+    assert np.all((lo[:, None] <= v) & (v <= hi[:, None]))
+    assert np.all(np.isfinite(lo) & np.isfinite(hi))

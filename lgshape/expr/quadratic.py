@@ -127,7 +127,9 @@ def _range(seg, q):
     lo, hi = m.minimum(pa, pb), m.maximum(pa, pb)
     inside = m.abs(c1) < 2.0 * m.abs(c2) * r
     c2s = m.select(c2 != 0, c2, 1.0)
-    pv = c0 - c1 * c1 / (4.0 * c2s)
+    # c1 (c1 / c2) / 4, not c1^2 / (4 c2): c1^2 may underflow (f scaled by
+    # 1e-30) or overflow where the quotient does not
+    pv = c0 - 0.25 * c1 * (c1 / c2s)
     lo = m.select(inside & (c2 > 0), m.minimum(lo, pv), lo)
     hi = m.select(inside & (c2 < 0), m.maximum(hi, pv), hi)
     w = q.R + seg.slack(seg.mag(q))
