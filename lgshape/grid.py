@@ -380,11 +380,8 @@ class Walker:
         t_out = self._exit(t, [a - k for a in i], [a + k + 1 for a in i], out)
         return hit, t_out, dr.zeros(UInt32, dr.width(t)), inside
 
-    def next(self, t, active, run: int = 1):
-        """(found, t_enter, t_exit, stuck, slot), see :func:`next_occupied`.
-        With ``run`` > 1, up to ``run`` consecutive occupied cells along the
-        ray are returned as one segment (from the first one's entry to the
-        last one's exit; ``slot``: the first one's)."""
+    def next(self, t, active):
+        """(found, t_enter, t_exit, stuck, slot), see :func:`next_occupied`."""
         import drjit as dr
         Float = type(t)
         Int32 = dr.int32_array_t(Float)
@@ -393,27 +390,21 @@ class Walker:
         max_steps = self.max_steps
         dense = self.g.dense
 
-        def body(t, active, found, t_enter, t_exit, steps, slot, cells):
+        def body(t, active, found, t_enter, t_exit, steps, slot):
             hit, t_out, cell_slot, inside = self.step(t, active)
-            first = hit & ~found
-            t_enter = dr.select(first, t, t_enter)
+            t_enter = dr.select(hit, t, t_enter)
             if not dense:       # (the dense table holds no slots: see below)
-                slot = dr.select(first, cell_slot, slot)
+                slot = dr.select(hit, cell_slot, slot)
             t_exit = dr.select(hit, t_out, t_exit)
-            cells = cells + dr.select(hit, 1, 0)
-            # a run ends at an empty cell, at its length, or at t_end
-            ended = (found & ~hit) | (cells >= run)
-            found = found | hit
-            t = dr.select(inside & ~ended, t_out, t)
+            t = dr.select(inside & ~hit, t_out, t)
             steps = steps + 1
-            return (t, inside & ~ended & (steps < max_steps), found, t_enter, t_exit, steps,
-                    slot, cells)
+            return (t, inside & ~hit & (steps < max_steps), found | hit, t_enter, t_exit, steps,
+                    slot)
 
         n = dr.width(t)
-        t_in, walking, found, t_enter, t_exit, steps, slot, _ = dr.while_loop(
+        t_in, walking, found, t_enter, t_exit, steps, slot = dr.while_loop(
             state=(Float(t), Bool(active), dr.zeros(Bool, n), dr.zeros(Float, n),
-                   dr.zeros(Float, n), dr.zeros(Int32, n), dr.zeros(UInt32, n),
-                   dr.zeros(Int32, n)),
+                   dr.zeros(Float, n), dr.zeros(Int32, n), dr.zeros(UInt32, n)),
             cond=lambda t, active, *_: active, body=body, label="lgshape_dda")
         stuck = ~found & (steps >= max_steps) & (t_in <= self.t_end)
         if dense and self.slots:

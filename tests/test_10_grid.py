@@ -111,14 +111,13 @@ def test06_dense_table_rings(name, depth, rng):
     assert (k >= 2).any()                       # the rings skip empty space
 
 
-@pytest.mark.parametrize("dense,run", [(True, 1), (False, 1), (True, 3)])
-def test07_walk_visits_every_cell_a_line_crosses(dense, run, rng, monkeypatch):
+@pytest.mark.parametrize("dense", [True, False])
+def test07_walk_visits_every_cell_a_line_crosses(dense, rng, monkeypatch):
     """The walk (through the dense table, or the brick map used above
-    DENSE_MAX_DEPTH) returns, in order, every occupied cell a ray crosses
-    (with ``run`` > 1, segments of up to that many consecutive occupied
-    cells). Oracle: the cells under 8000 points per ray spaced along it
-    (float64): every point in an occupied cell lies in a returned segment,
-    and the segments are disjoint, in order, and hold at most ``run`` cells."""
+    DENSE_MAX_DEPTH) returns, in order, every occupied cell a ray crosses.
+    Oracle: the cells under 8000 points per ray spaced along it (float64):
+    every point in an occupied cell lies in a returned segment, and the
+    segments are disjoint, in order, and one cell long at most."""
     import drjit as dr
     from drjit.llvm.ad import Float
     spec = LIBRARY["torus"]()
@@ -142,7 +141,7 @@ def test07_walk_visits_every_cell_a_line_crosses(dense, run, rng, monkeypatch):
     active = dr.full(dr.mask_t(Float), True, n)
     segments = [[] for _ in range(n)]
     for _ in range(20 * g.resolution):
-        found, ta, tb, stuck, slot = W.next(t, active, run)
+        found, ta, tb, stuck, slot = W.next(t, active)
         f, a_, b_ = (np.asarray(v) for v in (found, ta, tb))
         for r in np.flatnonzero(f):
             segments[r].append((float(a_[r]), float(b_[r])))
@@ -157,7 +156,7 @@ def test07_walk_visits_every_cell_a_line_crosses(dense, run, rng, monkeypatch):
     for r in range(n):
         seg = np.array(segments[r]).reshape(-1, 2)
         assert np.all(seg[:, 0] <= seg[:, 1]) and np.all(seg[1:, 0] >= seg[:-1, 1] - slack)
-        assert np.all(seg[:, 1] - seg[:, 0] <= run * np.sqrt(3) * g.cell_size.max() + slack)
+        assert np.all(seg[:, 1] - seg[:, 0] <= np.sqrt(3) * g.cell_size.max() + slack)
         ts = s * t_exit[r]
         ijk = np.clip(np.floor((o[r] + ts[:, None] * d[r] - lo) / g.cell_size).astype(int),
                       0, g.resolution - 1)
