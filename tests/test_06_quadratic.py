@@ -172,3 +172,34 @@ def test05_scaled_near_tangent(k, rng):
     v = _values(f, o, d, t)
     assert np.all((lo[:, None] <= v) & (v <= hi[:, None]))
     assert np.all(np.isfinite(lo) & np.isfinite(hi))
+
+
+@pytest.mark.parametrize("backend", ["numpy64", "drjit32"])
+def test06_sdf_grazing_a_wall(backend, rng):
+    """The capped cylinder SDF (radius 0.5, half height 0.6) on rays in the
+    slab that close in on its side wall from 5 delta to delta (delta 1e-4
+    to 1e-3): F = rho - r is in [delta, 5 delta] > 0, and the range's lower
+    bound must be positive. The square of max(rho - r, 0), a constant form
+    from sqrt's interval rule, once had a centred remainder reaching below
+    0, so such rays bisected their whole segment down to the minimum width
+    and hit the iteration cap (the stability suite's sdf_cylinder). Oracle:
+    the closed form rho - r along the ray."""
+    from lgshape.expr import node as N
+    x, y, z = N.var("x"), N.var("y"), N.var("z")
+    dx, dz = N.sqrt(x * x + y * y) - 0.5, N.abs_(z) - 0.6
+    f = N.minimum(N.maximum(dx, dz), 0.0) + N.sqrt(N.maximum(dx, 0.0) ** 2 + N.maximum(dz, 0.0) ** 2)
+    n = 400
+    delta = 10 ** rng.uniform(-4, -3, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    u = np.stack([np.cos(phi), np.sin(phi), np.zeros(n)], 1)        # radial
+    o = (0.5 + 5 * delta)[:, None] * u + np.array([0, 0, -0.5])
+    d = -4 * delta[:, None] * u + np.array([0, 0, 1.0])             # to 0.5 + delta at t = 1
+    a = rng.uniform(0, 0.5, n)
+    b = a + rng.uniform(0.01, 0.5, n)
+    if backend == "drjit32":
+        o, d, a, b = (v.astype(np.float32).astype(np.float64) for v in (o, d, a, b))
+    (lo, hi), = _ranges([f], o, d, a, b, backend)
+    t = a[:, None] + (b - a)[:, None] * np.linspace(0, 1, SAMPLES)[None]
+    v = _values(f, o, d, t)
+    assert np.all((lo[:, None] <= v) & (v <= hi[:, None]))
+    assert np.all(lo > 0), (np.sum(lo <= 0), lo[lo <= 0][:3])

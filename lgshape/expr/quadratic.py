@@ -225,8 +225,10 @@ def _smooth(seg: Segment, op: str, a: Quad) -> Quad:
     return Quad(f0, c1, c2, R)
 
 
-def _node(seg: Segment, n: Expr, args):
-    """The form of node n from its arguments' (Quads or plain arrays)."""
+def _node(seg: Segment, n: Expr, args, exact):
+    """The form of node n from its arguments' (Quads or plain arrays);
+    ``exact``: whether each argument's form is a polynomial's (no op that
+    went through an interval rule below it)."""
     m = seg.m
     op = n.op
     quads = [isinstance(a, Quad) for a in args]
@@ -242,10 +244,26 @@ def _node(seg: Segment, n: Expr, args):
         return _add(seg, q[0], q[1], 1.0 if op == "add" else -1.0)
     if op == "neg":
         return _neg(q[0])
-    if op == "mul":
-        return _mul(seg, q[0], q[1])
-    if op == "pow":
-        return _pow(seg, q[0], n.param)
+    if op in ("mul", "pow"):
+        t = _mul(seg, q[0], q[1]) if op == "mul" else _pow(seg, q[0], n.param)
+        square = n.args[0] is n.args[1] if op == "mul" else n.param % 2 == 0
+        if all(exact) or not square:
+            return t
+        # An argument from an interval rule is a constant form c0 +- R; its
+        # square as a centred form c0^2 +- (2 |c0| R + R^2) loses the
+        # dependency (the square of [2e-5, 6e-5] reached below 0), where
+        # the interval rule is exact: take the rule where the form is
+        # constant.
+        flat = None
+        for a in q:
+            c = (a.c1 == 0) & (a.c2 == 0)
+            flat = c if flat is None else flat & c
+        ranges = []
+        for a in q:
+            w = a.R + seg.slack(m.abs(a.c0) + a.R)
+            ranges.append(iv.Interval(m.select(m.isnan(w), -math.inf, a.c0 - w),
+                                      m.select(m.isnan(w), math.inf, a.c0 + w)))
+        return _select(m, flat, _via_interval(seg, n, ranges), t)
     ranges = [quad_range(seg, a) for a in q]
     fallback = _via_interval(seg, n, ranges)
     if op in ("min", "max"):
@@ -265,6 +283,9 @@ def _node(seg: Segment, n: Expr, args):
     return fallback
 
 
+_POLYNOMIAL = frozenset(("add", "sub", "mul", "neg", "pow"))
+
+
 def evaluate_quadratic(roots, env: dict, seg: Segment):
     """Quadratic forms of ``roots`` (an Expr or a list) over the segment.
 
@@ -276,6 +297,7 @@ def evaluate_quadratic(roots, env: dict, seg: Segment):
     roots = [roots] if single else list(roots)
     m = seg.m
     memo = {}
+    inexact = set()     # nodes whose form went through an interval rule
     with m.errstate():
         for n in topological(roots):
             if n.op in ("const", "named"):
@@ -283,14 +305,20 @@ def evaluate_quadratic(roots, env: dict, seg: Segment):
                 continue
             if n.op == "var":
                 v = env[n.param]
-                memo[id(n)] = from_interval(m, v) if isinstance(v, iv.Interval) else v
+                if isinstance(v, iv.Interval):
+                    v = from_interval(m, v)
+                    inexact.add(id(n))
+                memo[id(n)] = v
                 continue
             args = [memo[id(a)] for a in n.args]
             if not any(isinstance(a, Quad) for a in args):
                 extra = (n.param,) if n.op == "pow" else ()
                 memo[id(n)] = OPS[n.op].value(m, *args, *extra)
                 continue
-            memo[id(n)] = _node(seg, n, args)
+            exact = [id(a) not in inexact for a in n.args]
+            memo[id(n)] = _node(seg, n, args, exact)
+            if n.op not in _POLYNOMIAL or not all(exact):
+                inexact.add(id(n))
     out = [memo[id(r)] if isinstance(memo[id(r)], Quad) else _plain(m, memo[id(r)])
            for r in roots]
     return out[0] if single else out
