@@ -619,10 +619,9 @@ class _Evaluator:
 
     def point_and_bounds(self, s, lo, hi, rng, need):
         """:meth:`point` at s and the float32 bounds over [lo, hi] where
-        ``need``: (S_lo, S_hi) of :meth:`_bounds`; for a table form also
-        (Fi_lo, Fi_hi) of F itself, both in one loop over the cell's rows
-        with the point values (every lane: each row's parameters are
-        gathered once)."""
+        ``need`` (of :meth:`_bounds`); a table form's, the same bounds of g
+        and F, in one loop over the cell's rows with the point values
+        (every lane: each row's parameters are gathered once)."""
         K, R = self.K, self.rays
         if self.tabled:
             env, err = self._point_env(s)
@@ -647,9 +646,10 @@ class _Evaluator:
         return F, eF, g, eg
 
     def _bounds(self, lo, hi, need):
-        """Float32 interval (S_lo, S_hi) of g (of h in the Taylor mode) over
-        the segment e + [lo, hi] d, where ``need`` (a fused expression; a
-        table form's come from :meth:`point_and_bounds`)."""
+        """Float32 bounds over the segment e + [lo, hi] d where ``need`` (a
+        fused expression; a table form's come from :meth:`point_and_bounds`):
+        in the interval mode (g_lo, g_hi, F_lo, F_hi), the ranges of g's and
+        F's quadratic forms; in the Taylor mode (S_lo, S_hi), h's interval."""
         dr, K, R = self.dr, self.K, self.rays
         m, Float = K.m, K.m.Float
         if self.mode == "interval":
@@ -719,10 +719,11 @@ class _Evaluator:
             Fa = (_down(Fm_lo - gm_hi * r64 + h_lo * q2), _up(Fm_hi - gm_lo * r64 + h_hi * q2))
             Fb = (_down(Fm_lo + gm_lo * r64 + h_lo * q2), _up(Fm_hi + gm_hi * r64 + h_hi * q2))
         # F over the interval: the mean-value form where it is finite (F(t_m)
-        # defined, its derivative bounded), intersected with the natural
-        # interval form (a table form computes it with g's bounds; else it is
-        # evaluated only where the mean-value form fails: undefined points,
-        # domain edges, poles, where it also tells whether F is bounded).
+        # defined, its derivative bounded), intersected with the range of F's
+        # quadratic form (interval mode), or, where neither is finite
+        # (undefined points, domain edges, poles), the natural interval form,
+        # which also tells whether F is bounded there. A table form's
+        # quadratic form stands for both.
         mv_ok = defined & dr.isfinite(mv_lo) & dr.isfinite(mv_hi)
         if Fn and not self.tabled:
             # the quadratic form's range of F; the natural form only where

@@ -13,6 +13,12 @@ from .node import Expr, topological
 from .ops import OPS
 
 
+def constant(n, m):
+    """The array value of a ``const`` or ``named`` leaf (opaque in Dr.Jit,
+    see :meth:`~lgshape.arraymath.DrJitMath.const`)."""
+    return m.const(n.param) if n.op == "const" else m.named(*n.param)
+
+
 def _lookup(env, name):
     try:
         return env[name]
@@ -29,10 +35,8 @@ def evaluate(roots, env: dict, m=None):
     memo = {}
     with m.errstate():
         for n in topological(roots):
-            if n.op == "const":
-                v = m.const(n.param)
-            elif n.op == "named":
-                v = m.named(*n.param)
+            if n.op in ("const", "named"):
+                v = constant(n, m)
             elif n.op == "var":
                 v = _lookup(env, n.param)
             else:
@@ -58,7 +62,7 @@ def evaluate_interval(roots, env: dict, m):
     with m.errstate():
         for n in topological(roots):
             if n.op in ("const", "named"):
-                memo[id(n)] = m.const(n.param) if n.op == "const" else m.named(*n.param)
+                memo[id(n)] = constant(n, m)
                 continue
             if n.op == "var":
                 memo[id(n)] = _lookup(env, n.param)
@@ -113,7 +117,7 @@ def evaluate_with_error(roots, env: dict, env_error: dict, m, safety: bool = Tru
     with m.errstate():
         for n in topological(roots):
             if n.op in ("const", "named"):
-                val[id(n)] = m.const(n.param) if n.op == "const" else m.named(*n.param)
+                val[id(n)] = constant(n, m)
                 err[id(n)] = 0.0
                 continue
             if n.op == "var":

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 
 from .. import interval as iv
+from .evaluate import constant
 from .node import Expr, topological
 from .ops import OPS
 
@@ -301,7 +302,7 @@ def evaluate_quadratic(roots, env: dict, seg: Segment):
     with m.errstate():
         for n in topological(roots):
             if n.op in ("const", "named"):
-                memo[id(n)] = m.const(n.param) if n.op == "const" else m.named(*n.param)
+                memo[id(n)] = constant(n, m)
                 continue
             if n.op == "var":
                 v = env[n.param]
