@@ -759,8 +759,7 @@ class DeviceTables:
         its rows. Returns (F, eF, g, (g_lo, g_hi, F_lo, F_hi))."""
         import drjit as dr
         from .expr import evaluate, evaluate_interval, evaluate_with_error
-        from .expr.quadratic import Quad, evaluate_quadratic, quad_range
-        from .trace import quad_env
+        from .expr.quadratic import Quad, evaluate_quadratic, quad_env, quad_range
         Float, Float64 = self.Float, self.Float64
         dd = {k: env[k] for k in ("dx", "dy", "dz")}
         env, err = dict(env), dict(err)
@@ -769,7 +768,7 @@ class DeviceTables:
             err[v] = err.get(v, 0.0) + m64.u * dr.abs(env[v])
         seg, qenv0 = quad_env(m, e32, d32, lo, hi, self.centre32)
         n = dr.width(lo)
-        vals, errs, grads, avals, agrads, aq, agq = {}, {}, {}, {}, {}, {}, {}
+        vals, errs, grads, avals, agrads = {}, {}, {}, {}, {}
         for j, agg in enumerate(self.aggregates):
             comb, comb_g = self.combines[j]
             z64, z32 = dr.zeros(Float64, n), dr.zeros(Float, n)
@@ -817,22 +816,18 @@ class DeviceTables:
             vals[f"A{j}"] = dr.select(f64, ident, v)
             errs[f"A{j}"] = dr.select(f64, 0.0, ev)
             grads[f"gA{j}"] = dr.select(f64, 0.0, gv)
-            aq[f"A{j}"], agq[f"gA{j}"] = Quad(*rest[0:4]), Quad(*rest[4:8])
             # an aggregate without rows is its identity (maybe infinite):
             # the outer expression's intervals take it exactly
-            ra, rg = quad_range(seg, aq[f"A{j}"]), quad_range(seg, agq[f"gA{j}"])
+            ra, rg = quad_range(seg, Quad(*rest[0:4])), quad_range(seg, Quad(*rest[4:8]))
             avals[f"A{j}"] = iv.Interval(dr.select(first, ident, ra.lo),
                                          dr.select(first, ident, ra.hi))
             agrads[f"gA{j}"] = iv.Interval(dr.select(first, 0.0, rg.lo),
                                            dr.select(first, 0.0, rg.hi))
         F, eF = evaluate_with_error(self.outer, {**env, **vals}, {**err, **errs}, m64)
         g = evaluate(self.outer_g, {**env, **vals, **dd, **grads}, m64)
-        if self.outer.op == "var":       # F is one aggregate: its range
-            Fi, gi = avals[self.outer.param], agrads["g" + self.outer.param]
-        else:
-            ienv = {v: quad_range(seg, qenv0[v]) for v in "xyz"}
-            ienv.update({k: qenv0[k] for k in ("dx", "dy", "dz")})
-            Fi, gi = evaluate_interval([self.outer, self.outer_g], {**ienv, **avals, **agrads}, m)
+        ienv = {v: quad_range(seg, qenv0[v]) for v in "xyz"}
+        ienv.update({k: qenv0[k] for k in ("dx", "dy", "dz")})
+        Fi, gi = evaluate_interval([self.outer, self.outer_g], {**ienv, **avals, **agrads}, m)
         return F, eF, g, (gi.lo, gi.hi, Fi.lo, Fi.hi)
 
 

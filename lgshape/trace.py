@@ -81,7 +81,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from . import bounds, grid as gridmod
-from .expr.quadratic import Segment, coordinate, evaluate_quadratic, quad_range
+from .expr.quadratic import evaluate_quadratic, quad_env, quad_range
 from .arraymath import NUMPY, DrJitMath
 from .expr import (Expr, evaluate, evaluate_with_error, gradient, hessian, parse,
                    ray_derivatives)
@@ -557,19 +557,6 @@ WALKING, NONE, BRACKET, HIT, CAPPED = range(5)
 SPAN_CELLS = 8
 
 
-def quad_env(m, e32, d32, lo, hi, offsets=None):
-    """The segment e + [lo, hi] d as quadratic forms of its coordinates
-    about its float32 middle (:mod:`lgshape.expr.quadratic`), and the plain
-    direction."""
-    tm = 0.5 * (lo + hi)
-    r = m.maximum(tm - lo, hi - tm) * (1.0 + 4.0 * m.u)
-    seg = Segment(m, r)
-    env = {v: coordinate(seg, e32[i], d32[i], tm, None if offsets is None else offsets[i])
-           for i, v in enumerate("xyz")}
-    env.update({"d" + v: d32[i] for i, v in enumerate("xyz")})
-    return seg, env
-
-
 @dataclass
 class _Rays:
     """The per-ray constants of one search: the ray moved to its box entry
@@ -662,10 +649,8 @@ class _Evaluator:
             return dr.if_stmt(args=(lo, hi), cond=need, true_fn=true_fn,
                               false_fn=lambda lo, hi: (Float(0), Float(0), -inf, inf),
                               label="lgshape_bounds")
-        e = self.ge if self.mode == "interval" else self.he
-
         def true_fn(lo, hi):
-            Si = bounds.segment_interval(e, R.e32, R.d32, lo, hi, m)
+            Si = bounds.segment_interval(self.he, R.e32, R.d32, lo, hi, m)
             return Si.lo, Si.hi
         return dr.if_stmt(args=(lo, hi), cond=need, true_fn=true_fn,
                           false_fn=lambda lo, hi: (Float(0), Float(0)), label="lgshape_bounds")
@@ -730,8 +715,6 @@ class _Evaluator:
             # neither it nor the mean-value form is finite
             Fq_lo, Fq_hi = Fn
             q_ok = dr.isfinite(Fq_lo) & dr.isfinite(Fq_hi)
-            mv_lo = dr.select(q_ok, dr.maximum(mv_lo, Fq_lo), mv_lo)
-            mv_hi = dr.select(q_ok, dr.minimum(mv_hi, Fq_hi), mv_hi)
             need_fi = active & ~mv_ok & ~q_ok
             Fi_lo, Fi_hi = (Float64(v) for v in self._natural(lo, hi, need_fi))
             Fi_lo = dr.maximum(Fi_lo, Fq_lo)

@@ -16,9 +16,9 @@ from drjit.llvm import Float
 from lgshape.arraymath import NUMPY, DrJitMath
 from lgshape.bounds import segment_env
 from lgshape.expr import evaluate, evaluate_interval, parse, ray_derivatives
-from lgshape.expr.quadratic import Quad, Segment, coordinate, evaluate_quadratic, quad_range
+from lgshape.expr.quadratic import (Quad, Segment, coordinate, evaluate_quadratic, quad_env,
+                                    quad_range)
 from lgshape.interval import Interval
-from lgshape.trace import quad_env
 
 SEGMENTS, SAMPLES = 2000, 33
 

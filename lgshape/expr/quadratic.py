@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 
 from .. import interval as iv
-from .evaluate import constant
+from .evaluate import _lookup, constant
 from .node import Expr, topological
 from .ops import OPS
 
@@ -109,6 +109,21 @@ def _plain(m, v) -> Quad:
     """A plain (computed) value: rounding padded as :func:`interval.promote`."""
     z = 0.0 * v
     return Quad(v, z, z, m.abs(v) * m.eps + m.tiny)
+
+
+def quad_env(m, e32, d32, lo, hi, offsets=None):
+    """The segment e + [lo, hi] d of a ray (lists of three arrays e and d)
+    as a :class:`Segment` about its middle (computed in the arrays'
+    precision; r rounded up so that [tm - r, tm + r] covers [lo, hi]) and
+    the forms of its coordinates, plus the plain direction dx, dy, dz;
+    ``offsets``: intervals added to the coordinates (a grid centre)."""
+    tm = 0.5 * (lo + hi)
+    r = m.maximum(tm - lo, hi - tm) * (1.0 + 4.0 * m.u)
+    seg = Segment(m, r)
+    env = {v: coordinate(seg, e32[i], d32[i], tm, None if offsets is None else offsets[i])
+           for i, v in enumerate("xyz")}
+    env.update({"d" + v: d32[i] for i, v in enumerate("xyz")})
+    return seg, env
 
 
 def quad_range(seg: Segment, q: Quad) -> iv.Interval:
@@ -305,7 +320,7 @@ def evaluate_quadratic(roots, env: dict, seg: Segment):
                 memo[id(n)] = constant(n, m)
                 continue
             if n.op == "var":
-                v = env[n.param]
+                v = _lookup(env, n.param)
                 if isinstance(v, iv.Interval):
                     v = from_interval(m, v)
                     inexact.add(id(n))
