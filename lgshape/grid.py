@@ -139,7 +139,7 @@ class DeviceGrid:
       at most MAX_SKIP) to the nearest occupied brick: the (2k - 1)^3 bricks
       around an empty one are all empty, so a ray crosses them in one step.
     - Up to :data:`DENSE_MAX_DEPTH`, also a dense table of every fine cell,
-      a byte each (:func:`dense_table`), which the walk reads with one
+      four bits each (:func:`dense_table`), which the walk reads with one
       gather per step (on the CPUs measured, a gather costs about as much
       as a whole evaluation of a small f) and whose rings let it skip empty
       space in any direction. Finer grids walk the brick map."""
@@ -157,15 +157,19 @@ class DeviceGrid:
             self.table = UInt32(dense_table(grid))
 
 
-#: The dense walk table is built up to this depth (256^3 cells, 16 MB; 2 MB
+#: The dense walk table is built up to this depth (256^3 cells, 8 MB; 1 MB
 #: at depth 7). Measured against the brick map, 512^2 camera rays: union of
 #: 1000 spheres (depth 7) 85 -> 69-75 ms, of 10000 (depth 8) 160-167 ->
 #: 132-138 ms; blend of 10000 blobs (depth 8) 190-210 -> 174-177 ms. With 4
 #: bytes a cell (the slot, and a Euclidean distance bound) the table was
 #: 1.5x slower than the brick map at depth 8.
 DENSE_MAX_DEPTH = 8
-#: The largest ring count of the dense table (a byte per cell).
-MAX_RINGS = 254
+#: The largest ring count of the dense table (four bits a cell: 1 + k <=
+#: 15). Measured against a byte a cell (rings up to 254), 512^2 camera and
+#: 262144 incoherent rays, interleaved in one process: camera within 2%,
+#: incoherent 7-9% faster (the table is half the size in the caches; the
+#: longer skips were rarely taken), the scale models at depth 8 5% faster.
+MAX_RINGS = 14
 
 
 def cell_slots(grid: PruningGrid, cells) -> np.ndarray:
@@ -176,10 +180,10 @@ def cell_slots(grid: PruningGrid, cells) -> np.ndarray:
 
 
 def dense_rings(grid: PruningGrid) -> np.ndarray:
-    """A byte per fine cell, [k, j, i]: 0 for an occupied cell, 1 + k for
-    an empty one, where the cells i - k .. i + k on every axis are all empty
-    (the chessboard distance transform to the occupied cells, less one;
-    scipy), at most MAX_RINGS."""
+    """A value per fine cell (uint8), [k, j, i]: 0 for an occupied cell,
+    1 + k for an empty one, where the cells i - k .. i + k on every axis
+    are all empty (the chessboard distance transform to the occupied cells,
+    less one; scipy), at most MAX_RINGS."""
     from scipy import ndimage
     R = grid.resolution
     cells = grid.cells.astype(np.int64)
@@ -193,19 +197,22 @@ def dense_rings(grid: PruningGrid) -> np.ndarray:
 
 
 def dense_table(grid: PruningGrid) -> np.ndarray:
-    """:func:`dense_rings` in bricks of 4^3 cells, 64 bytes each (a cache
-    line: the cells near a ray's path, and near its neighbours', share
-    lines), packed four cells to a uint32: see :func:`dense_index`."""
+    """:func:`dense_rings` in bricks of 4^3 cells, 32 bytes each (half a
+    cache line: the cells near a ray's path, and near its neighbours', share
+    lines), four bits a cell, eight cells to a uint32 (the first in the low
+    bits): see :func:`dense_index`."""
     nb = grid.resolution // BRICK
     b = dense_rings(grid).reshape(nb, BRICK, nb, BRICK, nb, BRICK)   # [K, k, J, j, I, i]
     b = b.transpose(0, 2, 4, 1, 3, 5)                                 # [K, J, I, k, j, i]
-    return np.ascontiguousarray(b).reshape(-1).view(np.uint32).copy()
+    b = np.ascontiguousarray(b).reshape(-1)
+    return (b[0::2] | (b[1::2] << 4)).view(np.uint32).copy()
 
 
 def dense_index(i, R: int):
-    """The byte of fine cell i (three integer arrays, numpy or Dr.Jit) in
-    :func:`dense_table`: ((K nb + J) nb + I) 64 + (k 4 + j) 4 + i, with
-    (I, i) = divmod(i, 4) per axis."""
+    """The place c of fine cell i (three integer arrays, numpy or Dr.Jit)
+    in :func:`dense_table` (word c >> 3, bits 4 (c & 7) up):
+    ((K nb + J) nb + I) 64 + (k 4 + j) 4 + i, with (I, i) = divmod(i, 4)
+    per axis."""
     nb = R // BRICK
     brick = ((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2)
     return brick * 64 + (((i[2] & 3) << 4) | ((i[1] & 3) << 2) | (i[0] & 3))
@@ -372,10 +379,12 @@ class Walker:
         Float = type(t)
         UInt32 = dr.uint32_array_t(Float)
         R = g.R
-        c = UInt32(dense_index(i, R))
-        w = dr.gather(UInt32, g.table, c >> 2, inside)
-        b = type(i[0])((w >> ((c & 3) << 3)) & 255)
+        c = UInt32(dense_index(i, R))           # (eight cells a word)
+        w = dr.gather(UInt32, g.table, c >> 3, inside)
+        b = type(i[0])((w >> ((c & 7) << 2)) & 15)
         hit = inside & (b == 0)
+        # the exit of the cube of cells i - k .. i + k (k = b - 1; an
+        # occupied cell's own exit: k = 0), as in _exit
         k = dr.maximum(b - 1, 0)
         t_out = self._exit(t, [a - k for a in i], [a + k + 1 for a in i], out)
         return hit, t_out, dr.zeros(UInt32, dr.width(t)), inside

@@ -332,9 +332,9 @@ class Surface:
     @property
     def memory_bytes(self) -> int:
         """Size of the pruning structure: the brick map, and the walk's
-        dense table up to :data:`lgshape.grid.DENSE_MAX_DEPTH` (a byte a
+        dense table up to :data:`lgshape.grid.DENSE_MAX_DEPTH` (four bits a
         fine cell)."""
-        dense = self.grid.resolution ** 3 if self.depth <= gridmod.DENSE_MAX_DEPTH else 0
+        dense = self.grid.resolution ** 3 // 2 if self.depth <= gridmod.DENSE_MAX_DEPTH else 0
         return self.grid.nbytes + dense
 
     def global_G(self) -> float:

@@ -81,9 +81,9 @@ def test05_bad_depth():
 
 @pytest.mark.parametrize("name,depth", [("torus", 5), ("tangle", 6), ("sphere", 6)])
 def test06_dense_table_rings(name, depth, rng):
-    """The walk's dense table: a byte per cell, 0 for the occupied cells,
-    1 + k for an empty one, in bricks of 4^3 cells, packed four to a
-    uint32. Oracle: brute force
+    """The walk's dense table: a value per cell, 0 for the occupied cells,
+    1 + k for an empty one (k at most MAX_RINGS = 14), in bricks of 4^3
+    cells, four bits each, packed eight to a uint32. Oracle: brute force
     over all occupied cells: an empty cell's chessboard distance (in cells)
     to the nearest occupied cell is exactly k + 1 (so the cube of cells
     i - k .. i + k is empty and the next ring is not)."""
@@ -92,10 +92,10 @@ def test06_dense_table_rings(name, depth, rng):
     R = g.resolution
     rings = G.dense_rings(g)
     packed = G.dense_table(g)
-    assert packed.dtype == np.uint32 and len(packed) * 4 == R ** 3
+    assert packed.dtype == np.uint32 and len(packed) * 8 == R ** 3
     ijk = rng.integers(0, R, (500, 3))
     c = G.dense_index([ijk[:, 0], ijk[:, 1], ijk[:, 2]], R)
-    assert np.array_equal((packed[c >> 2] >> ((c & 3) * 8)) & 255,
+    assert np.array_equal((packed[c >> 3] >> ((c & 7) * 4)) & 15,
                           rings[ijk[:, 2], ijk[:, 1], ijk[:, 0]])
     assert np.array_equal(np.sort(G.dense_index(np.indices((R, R, R)).reshape(3, -1), R)),
                           np.arange(R ** 3))                 # one byte per cell
