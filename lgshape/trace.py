@@ -81,7 +81,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from . import bounds, grid as gridmod
-from .expr.quadratic import evaluate_quadratic, quad_env, quad_range
+from .expr.quadratic import quad_ends, evaluate_quadratic, quad_env, quad_range
 from .arraymath import NUMPY, DrJitMath
 from .expr import (Expr, evaluate, evaluate_with_error, gradient, hessian, parse,
                    ray_derivatives)
@@ -614,6 +614,14 @@ class _Evaluator:
             env, err = self._point_env(s)
             F, eF, g, B = K.tables.point_segment(env, err, rng, K.m64, R.e32, R.d32, lo, hi, K.m)
             return (F, eF, g, None), B
+        if self.mode == "interval":
+            # g's value only starts Newton in a bracket: the slope of F's
+            # quadratic form at the middle (float32) serves, so the point
+            # here is F's alone
+            env, err = self._point_env(s)
+            F, eF = evaluate_with_error(self.f, env, err, self.K.m64)
+            B = self._bounds(lo, hi, need)
+            return (F, eF, self.K.m64.Float(B[4]), None), B[:4] + B[5:]
         return self.point(s, rng), self._bounds(lo, hi, need)
 
     def point(self, s, rng):
@@ -644,10 +652,11 @@ class _Evaluator:
                 seg, env = quad_env(m, R.e32, R.d32, lo, hi)
                 Qf, Qg = evaluate_quadratic([self.f, self.ge], env, seg)
                 Fq, gq = quad_range(seg, Qf), quad_range(seg, Qg)
-                return gq.lo, gq.hi, Fq.lo, Fq.hi
+                return (gq.lo, gq.hi, Fq.lo, Fq.hi, Qf.c1) + quad_ends(seg, Qf)
             inf = Float(dr.inf)
             return dr.if_stmt(args=(lo, hi), cond=need, true_fn=true_fn,
-                              false_fn=lambda lo, hi: (Float(0), Float(0), -inf, inf),
+                              false_fn=lambda lo, hi: (Float(0), Float(0), -inf, inf, Float(0),
+                                                       -inf, inf, -inf, inf),
                               label="lgshape_bounds")
         def true_fn(lo, hi):
             Si = bounds.segment_interval(self.he, R.e32, R.d32, lo, hi, m)
@@ -713,7 +722,7 @@ class _Evaluator:
         if Fn and not self.tabled:
             # the quadratic form's range of F; the natural form only where
             # neither it nor the mean-value form is finite
-            Fq_lo, Fq_hi = Fn
+            Fq_lo, Fq_hi = Fn[:2]
             q_ok = dr.isfinite(Fq_lo) & dr.isfinite(Fq_hi)
             need_fi = active & ~mv_ok & ~q_ok
             Fi_lo, Fi_hi = (Float64(v) for v in self._natural(lo, hi, need_fi))
@@ -732,6 +741,12 @@ class _Evaluator:
         # hide a pole or the edge of f's domain).
         monotone = defined & ((g_lo > 0) | (g_hi < 0)) & dr.isfinite(g_lo) & dr.isfinite(g_hi)
         s_a, s_b, s_m = _sign_of(*Fa), _sign_of(*Fb), _sign_of(Fm_lo, Fm_hi)
+        if len(Fn) == 6:
+            # the quadratic form's values at the ends (second order, where
+            # the mean-value form is first order); the two are at points an
+            # ulp or so apart, so a disagreement leaves the sign unknown
+            s_a = _either_sign(s_a, _sign_of(Fn[2], Fn[3]))
+            s_b = _either_sign(s_b, _sign_of(Fn[4], Fn[5]))
         left = monotone & (s_m != 0) & (s_a == -s_m)
         right = monotone & ~left & (s_m != 0) & (s_b == -s_m)
         # F(t_m) within its error bound of 0 (a root at the middle, to
@@ -774,6 +789,12 @@ def _sign_of(lo, hi):
     """+1 / -1 where [lo, hi] has one strict sign, else 0 (NaN: 0)."""
     import drjit as dr
     return dr.select(lo > 0, 1, dr.select(hi < 0, -1, 0))
+
+
+def _either_sign(s1, s2):
+    """The sign two bounds tell (0 where neither does, or they disagree)."""
+    import drjit as dr
+    return dr.select(s1 == 0, s2, dr.select((s2 != 0) & (s2 != s1), 0, s1))
 
 
 def _sign_known(F, eF):

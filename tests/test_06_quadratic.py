@@ -16,8 +16,8 @@ from drjit.llvm import Float
 from lgshape.arraymath import NUMPY, DrJitMath
 from lgshape.bounds import segment_env
 from lgshape.expr import evaluate, evaluate_interval, parse, ray_derivatives
-from lgshape.expr.quadratic import (Quad, Segment, coordinate, evaluate_quadratic, quad_env,
-                                    quad_range)
+from lgshape.expr.quadratic import (Quad, Segment, coordinate, evaluate_quadratic, quad_ends,
+                                    quad_env, quad_range)
 from lgshape.interval import Interval
 
 SEGMENTS, SAMPLES = 2000, 33
@@ -76,6 +76,41 @@ def test01_segment_soundness(case, backend, rng):
         bad = np.argwhere(~ok)
         assert bad.size == 0, (f"{name}: {len(bad)} samples outside; first: "
                                f"{v[tuple(bad[0])]} not in [{lo[bad[0][0]]}, {hi[bad[0][0]]}]")
+
+
+@pytest.mark.parametrize("backend", ["numpy64", "drjit32"])
+@pytest.mark.parametrize("case", ALL_CASES, ids=case_id)
+def test01b_end_values_sound(case, backend, rng):
+    """The bounds of f at the segment's ends (``quad_ends``: the form at
+    s = -r and s = +r, which the search uses for the signs at an interval's
+    ends): the float64 value of f at tm -+ r (tm and r as the form has them)
+    inside them, NaN (undefined points) excepted. No tolerance."""
+    f, bbox = case_expr(*case)
+    if backend == "drjit32":
+        o, d, a, b = (v.astype(np.float32).astype(np.float64)
+                      for v in _segments(rng, bbox, SEGMENTS))
+        m = DrJitMath(Float)
+        O, D = [Float(o[:, i]) for i in range(3)], [Float(d[:, i]) for i in range(3)]
+        A, B = Float(a), Float(b)
+        seg, env = quad_env(m, O, D, A, B)
+        (q,) = evaluate_quadratic([f], env, seg)
+        z = 0 * O[0]
+        tm = np.asarray(0.5 * (A + B), np.float64)
+        r = np.asarray(seg.r + z, np.float64)
+        ends = [np.asarray(v + z, np.float64) for v in quad_ends(seg, q)]
+    else:
+        o, d, a, b = _segments(rng, bbox, SEGMENTS)
+        seg, env = quad_env(NUMPY, list(o.T), list(d.T), a, b)
+        (q,) = evaluate_quadratic([f], env, seg)
+        tm, r = 0.5 * (a + b), np.broadcast_to(seg.r, a.shape)
+        ends = [np.broadcast_to(v, a.shape) for v in quad_ends(seg, q)]
+    for k, t in enumerate((tm - r, tm + r)):
+        lo, hi = ends[2 * k], ends[2 * k + 1]
+        v = _values(f, o, d, t[:, None])[:, 0]
+        ok = np.isnan(v) | ((lo <= v) & (v <= hi))
+        assert ok.all(), (f"end {k}: {int((~ok).sum())} outside; first: "
+                          f"{v[~ok][0]} not in [{lo[~ok][0]}, {hi[~ok][0]}]")
+    assert np.isfinite(ends[0]).any()           # the check is not vacuous
 
 
 def test02_exact_on_quadratics(rng):

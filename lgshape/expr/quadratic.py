@@ -135,6 +135,21 @@ def quad_range(seg: Segment, q: Quad) -> iv.Interval:
         return _range(seg, q)
 
 
+def quad_ends(seg: Segment, q: Quad):
+    """Bounds of q at s = -r and s = +r: (lo_a, hi_a, lo_b, hi_b), each the
+    quadratic's value there widened by R and the rounding; NaN or overflow
+    gives infinite bounds."""
+    m = seg.m
+    with m.errstate():
+        pa = q.c0 - q.c1 * seg.r + q.c2 * seg.r2
+        pb = q.c0 + q.c1 * seg.r + q.c2 * seg.r2
+        w = q.R + seg.slack(seg.mag(q))
+        out = []
+        for v in (pa - w, pa + w, pb - w, pb + w):
+            out.append(m.select(m.isnan(v), math.inf if len(out) % 2 else -math.inf, v))
+        return tuple(out)
+
+
 def _range(seg, q):
     m, r, r2 = seg.m, seg.r, seg.r2
     c0, c1, c2 = q.c0, q.c1, q.c2
