@@ -621,7 +621,14 @@ class _Evaluator:
             env, err = self._point_env(s)
             F, eF = evaluate_with_error(self.f, env, err, self.K.m64)
             B = self._bounds(lo, hi, need)
-            return (F, eF, self.K.m64.Float(B[4]), None), B[:4] + B[5:]
+            # ... unless an interval rule flattened the form (sqrt, an SDF's
+            # distance): there g's float64 value, in a packet that needs it
+            Float64 = self.K.m64.Float
+            flat = need & (B[4] == 0)
+            g = self.dr.if_stmt(args=(s,), cond=flat,
+                                true_fn=lambda s: evaluate(self.ge, env, self.K.m64),
+                                false_fn=lambda s: Float64(0), label="lgshape_slope")
+            return (F, eF, self.dr.select(flat, g, Float64(B[4])), None), B[:4] + B[5:]
         return self.point(s, rng), self._bounds(lo, hi, need)
 
     def point(self, s, rng):
