@@ -762,6 +762,10 @@ class _Evaluator:
         whole = monotone & (s_m == 0) & (s_a != 0) & (s_b == -s_a)
         empty = active & (excluded | (monotone & (s_m != 0) & (s_a == s_m) & (s_b == s_m)))
         bracket = active & ~empty & (left | right | whole)
+        # a sign change with F continuous (g bounded): some root, maybe
+        # several (enough for an any-hit query)
+        crossing = active & ~empty & defined & dr.isfinite(g_lo) & dr.isfinite(g_hi) \
+            & ((s_a * s_b < 0) | (s_a * s_m < 0) | (s_m * s_b < 0))
         return _Test(
             r=r, s_m=s_m, empty=empty, bracket=bracket,
             open=active & ~empty & ~bracket,
@@ -769,6 +773,7 @@ class _Evaluator:
             # its left end's sign
             b_lo=dr.select(right, tm, Float64(lo)), b_hi=dr.select(left, tm, Float64(hi)),
             b_sign=dr.select(right, s_m, s_a), g_min=dr.minimum(dr.abs(g_lo), dr.abs(g_hi)),
+            crossing=crossing,
             defined=defined,
             # F bounded over the interval: no pole inside it
             bounded=mv_ok | (dr.isfinite(Fi_lo) & dr.isfinite(Fi_hi)),
@@ -787,6 +792,7 @@ class _Test:
     b_hi: object
     b_sign: object       # Int32: sign of F at b_lo
     g_min: object        # Float64: min |g| over the interval (bracket lanes)
+    crossing: object     # Bool: F changes sign, continuously: a root
     defined: object      # Bool: F(tm) defined
     bounded: object      # Bool: F bounded over the interval
     evals: object        # point plus interval evaluations made
@@ -998,8 +1004,10 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
     lane.evals = lane.evals + dr.select(busy, 1, 0) + dr.select(searching, UInt32(T.evals - 1), 0)
 
     # ---- no root: the next interval; one root: a bracket; else split ----
-    tiny = T.open & ((T.r < R.r_min) | (lane.level >= MAX_LEVEL))
-    split = T.open & ~tiny
+    # (an any-hit query stops at any proven root: a sign change will do)
+    cross = T.crossing & ~T.bracket & any_hit
+    tiny = T.open & ~cross & ((T.r < R.r_min) | (lane.level >= MAX_LEVEL))
+    split = T.open & ~cross & ~tiny
     lv_n, ix_n, seg_done = _advance(lane.level, lane.idx)
     lane.level = dr.select(split, lane.level + 1, dr.select(T.empty, lv_n, lane.level))
     lane.idx = dr.select(split, lane.idx << 1, dr.select(T.empty, ix_n, lane.idx))
@@ -1009,7 +1017,8 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
     lane.s_lo = dr.select(br, T.b_sign, lane.s_lo)
     lane.g_min = dr.select(br, T.g_min, lane.g_min)
     if any_hit:          # a bracket proves a root: enough for an any-hit query
-        lane.t = dr.select(br, 0.5 * (T.b_lo + T.b_hi), lane.t)
+        lane.t = dr.select(br, 0.5 * (T.b_lo + T.b_hi), dr.select(cross, tm, lane.t))
+        br = br | cross
         lane.outcome = dr.select(br, HIT, lane.outcome)
     else:
         lane.t = dr.select(br, _newton(tm, F, g, T.b_lo, T.b_hi), lane.t)

@@ -43,7 +43,7 @@ import numpy as np
 import pytest
 
 import lgshape
-from lgshape.reference import clip_to_box, polynomial_roots
+from lgshape.reference import along, clip_to_box, polynomial_roots
 from oracles import check_first_roots, sphere_roots
 
 PHI = (1 + math.sqrt(5)) / 2
@@ -279,3 +279,72 @@ def test03_close_root_pairs(case, rng):
     groups = np.where(sep[keep] < 1e-5, "4e-6..1e-5", np.where(sep[keep] < 1e-4, "1e-5..1e-4", "1e-4..2e-4"))
     cls = check_first_roots(surf, F, o32, d32, roots, groups=groups)
     assert cls["pair"] == len(o32), f"rays outside the pair class: {cls}"
+
+
+@pytest.mark.parametrize("name", ["tangle", "barth_sextic", "chmutov6", "kummer", "clebsch"])
+def test04_occluded_matches_polynomial_roots(name, rng):
+    """``occluded`` (an any-hit query, which stops at a bracket or at a
+    sign change of F with g bounded) on 40k rays (outside, inside, grazing)
+    with random t_max, and on shadow rays from points 1e-3 diagonals off
+    the surface towards a light. Oracle: the companion-matrix roots in
+    [t_min, t_max]: a ray with a verified root there (a sign change of F
+    in float64 over +-h, h = 1e-4 diagonals or half the gap to a neighbour
+    or an end, at least 2e-6) must be occluded; a ray with no root within
+    1e-4 diagonals of the real axis there must not. Rays with only
+    unverified roots (tangent touches, roots at an end) are left out, and
+    counted."""
+    degree, F = FORMULAS[name]
+    spec = lgshape.surfaces.LIBRARY[name]()
+    surf = lgshape.Surface(spec)
+    lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
+    diag = float(np.linalg.norm(hi - lo))
+    o32, d32 = _rays(rng, F, degree, lo, hi)
+    o32, d32 = o32[::2], d32[::2]
+    o, d = o32.astype(np.float64), d32.astype(np.float64)
+    t0, t1 = clip_to_box(o, d, lo, hi)
+    t_max = np.where(t1 > t0, t0 + (t1 - t0) * rng.uniform(0, 1.2, len(o)), 1.0)
+    # shadow rays: first hits of the outside rays, moved off the surface
+    # along the normal (to the ray's side), towards a light outside the box
+    rts = polynomial_roots(F, degree, o, d, t0, t1)
+    real = np.where((np.abs(rts.imag) < 1e-9) & (rts.real >= t0[:, None])
+                    & (rts.real <= t1[:, None]), rts.real, np.inf).min(1)
+    k = np.flatnonzero(np.isfinite(real))[:15_000]
+    p = o[k] + real[k, None] * d[k]
+    e = 1e-6
+    n = _unit(np.stack([(F(*(p + e * ax).T) - F(*(p - e * ax).T)) / (2 * e)
+                        for ax in np.eye(3)], 1))
+    n = np.where((n * d[k]).sum(1, keepdims=True) > 0, -n, n)
+    start = p + 1e-3 * diag * n
+    light = 0.5 * (lo + hi) + np.array([0.6, 0.8, 1.0]) * diag
+    dist = np.linalg.norm(light - start, axis=1)
+    o32 = np.concatenate([o32, start.astype(np.float32)])
+    d32 = np.concatenate([d32, _unit(light - start).astype(np.float32)])
+    t_max = np.concatenate([t_max, dist]).astype(np.float32)
+    occ = np.asarray(surf.occluded(o32, d32, t_max))
+
+    o, d = o32.astype(np.float64), d32.astype(np.float64)
+    t0, t1 = clip_to_box(o, d, lo, hi)
+    t1 = np.minimum(t1, t_max.astype(np.float64))
+    ok = t1 > t0
+    rts = polynomial_roots(F, degree, o, d, np.where(ok, t0, 0), np.where(ok, t1, 1))
+    delta, h_min = 1e-4 * diag, 2e-6 * diag
+    with np.errstate(all="ignore"):
+        near = ok[:, None] & (np.abs(rts.imag) < delta) & (rts.real >= t0[:, None] - delta) \
+            & (rts.real <= t1[:, None] + delta)
+        c = np.where(near, rts.real, np.nan)
+        gap = np.full(c.shape, np.inf)
+        for j in range(c.shape[1]):           # the gap to the nearest other candidate
+            others = np.abs(c[:, [j]] - np.where(np.arange(c.shape[1]) == j, np.inf, c))
+            gap[:, j] = np.nanmin(np.where(np.isnan(others), np.inf, others), 1)
+        h = np.minimum.reduce([np.full(c.shape, delta), gap / 2, c - t0[:, None],
+                               t1[:, None] - c])
+        fm = along(F, o, d, np.where(near, c - h, 0))
+        fp = along(F, o, d, np.where(near, c + h, 0))
+        verified = near & (h >= h_min) & (np.sign(fm) * np.sign(fp) < 0)
+    yes, no = verified.any(1), ~near.any(1)
+    decided = yes | no
+    assert np.array_equal(occ[yes], np.ones(int(yes.sum()), bool)), \
+        f"{int((~occ[yes]).sum())} of {int(yes.sum())} rays with a root not occluded"
+    assert not occ[no].any(), f"{int(occ[no].sum())} of {int(no.sum())} rays without a root occluded"
+    assert yes.sum() > 5_000 and no.sum() > 5_000 and (~decided).mean() < 0.02, \
+        (int(yes.sum()), int(no.sum()), int((~decided).sum()))
