@@ -81,7 +81,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from . import bounds, grid as gridmod
-from .expr.quadratic import quad_ends, evaluate_quadratic, quad_env, quad_range
+from .expr.quadratic import evaluate_quadratic, quad_ends, quad_env, quad_range
 from .arraymath import NUMPY, DrJitMath
 from .expr import (Expr, evaluate, evaluate_with_error, gradient, hessian, parse,
                    ray_derivatives)
@@ -606,7 +606,8 @@ class _Evaluator:
 
     def point_and_bounds(self, s, lo, hi, rng, need):
         """:meth:`point` at s and the float32 bounds over [lo, hi] where
-        ``need`` (of :meth:`_bounds`); a table form's, the same bounds of g
+        ``need`` (of :meth:`_bounds`, less the slope, which stands for g's
+        point value in the interval mode); a table form's, the ranges of g
         and F, in one loop over the cell's rows with the point values
         (every lane: each row's parameters are gathered once)."""
         K, R = self.K, self.rays
@@ -650,8 +651,10 @@ class _Evaluator:
     def _bounds(self, lo, hi, need):
         """Float32 bounds over the segment e + [lo, hi] d where ``need`` (a
         fused expression; a table form's come from :meth:`point_and_bounds`):
-        in the interval mode (g_lo, g_hi, F_lo, F_hi), the ranges of g's and
-        F's quadratic forms; in the Taylor mode (S_lo, S_hi), h's interval."""
+        in the interval mode (g_lo, g_hi, F_lo, F_hi, c1, Fa_lo, Fa_hi,
+        Fb_lo, Fb_hi): the ranges of g's and F's quadratic forms, the slope
+        of F's form at the middle, and its bounds at the two ends; in the
+        Taylor mode (S_lo, S_hi), h's interval."""
         dr, K, R = self.dr, self.K, self.rays
         m, Float = K.m, K.m.Float
         if self.mode == "interval":
@@ -748,7 +751,7 @@ class _Evaluator:
         # hide a pole or the edge of f's domain).
         monotone = defined & ((g_lo > 0) | (g_hi < 0)) & dr.isfinite(g_lo) & dr.isfinite(g_hi)
         s_a, s_b, s_m = _sign_of(*Fa), _sign_of(*Fb), _sign_of(Fm_lo, Fm_hi)
-        if len(Fn) == 6:
+        if len(Fn) == 6:        # (Fq_lo, Fq_hi, Fa_lo, Fa_hi, Fb_lo, Fb_hi)
             # the quadratic form's values at the ends (second order, where
             # the mean-value form is first order); the two are at points an
             # ulp or so apart, so a disagreement leaves the sign unknown
