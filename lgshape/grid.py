@@ -317,6 +317,13 @@ class Walker:
         self.inv_cell = [1.0 / g.cell[a] for a in range(3)]
         self.inv_d = [dr.select(d[a] == 0, 0.0, 1.0 / d[a]) for a in range(3)]
         self.max_steps = 4 * R + 16
+        # a step's chain of dependent operations, shortened: the position in
+        # cells is fma(t, d / cell, o / cell + shift), and a face's t
+        # fma(face, cell / d, -o / d)
+        self.d_cells = [d[a] * self.inv_cell[a] for a in range(3)]
+        self.o_cells = [o[a] * self.inv_cell[a] + self.shift[a] for a in range(3)]
+        self.cell_t = [g.cell[a] * self.inv_d[a] for a in range(3)]
+        self.o_t = [-o[a] * self.inv_d[a] for a in range(3)]
 
     def _cell(self, t):
         """The fine cell i of the ray at t (three Int32, located with the
@@ -328,8 +335,9 @@ class Walker:
         R, d = self.g.R, self.d
         i, out = [], []
         for a in range(3):
-            p = dr.fma(t, d[a], self.o[a]) * self.inv_cell[a] + self.shift[a]
-            i.append(dr.clip(Int32(dr.floor(p)), 0, R - 1))
+            p = dr.fma(t, self.d_cells[a], self.o_cells[a])
+            # truncation is the floor where it matters: p < 0 clips to 0
+            i.append(dr.clip(Int32(p), 0, R - 1))
             out.append(((p >= R) & (d[a] > 0)) | ((p < 0) & (d[a] < 0)))
         return i, out
 
@@ -385,8 +393,14 @@ class Walker:
         hit = inside & (b == 0)
         # the exit of the cube of cells i - k .. i + k (k = b - 1; an
         # occupied cell's own exit: k = 0), as in _exit
-        k = dr.maximum(b - 1, 0)
-        t_out = self._exit(t, [a - k for a in i], [a + k + 1 for a in i], out)
+        k = Float(dr.maximum(b - 1, 0))
+        d = self.d
+        t_out = Float(dr.inf)
+        for a in range(3):
+            face = Float(i[a]) + dr.select(d[a] > 0, k + 1, -k)
+            t_a = dr.fma(face, self.cell_t[a], self.o_t[a])
+            t_out = dr.minimum(t_out, dr.select((d[a] == 0) | out[a], dr.inf, t_a))
+        t_out = dr.maximum(t_out, t + dr.maximum(self.t_nudge, dr.abs(t) * 2.0**-22))
         return hit, t_out, dr.zeros(UInt32, dr.width(t)), inside
 
     def next(self, t, active):

@@ -775,7 +775,8 @@ class _Evaluator:
             # the bracket: the left half, the right half or the whole, and
             # its left end's sign
             b_lo=dr.select(right, tm, Float64(lo)), b_hi=dr.select(left, tm, Float64(hi)),
-            b_sign=dr.select(right, s_m, s_a), g_min=dr.minimum(dr.abs(g_lo), dr.abs(g_hi)),
+            b_sign=dr.select(right, s_m, s_a),
+            g_min=dr.select(monotone, dr.minimum(dr.abs(g_lo), dr.abs(g_hi)), 0.0),
             crossing=crossing,
             defined=defined,
             # F bounded over the interval: no pole inside it
@@ -794,7 +795,7 @@ class _Test:
     b_lo: object
     b_hi: object
     b_sign: object       # Int32: sign of F at b_lo
-    g_min: object        # Float64: min |g| over the interval (bracket lanes)
+    g_min: object        # Float64: min |g| over the interval where g keeps one sign, else 0
     crossing: object     # Bool: F changes sign, continuously: a root
     defined: object      # Bool: F(tm) defined
     bounded: object      # Bool: F bounded over the interval
@@ -1032,12 +1033,12 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
     rare = tiny | (mode == TINY_A) | (mode == TINY_B) | (mode == EDGE)
 
     def small(*args):
-        ln = _Lane(*args[:-9])
-        _small(ev, ln, *args[-9:], any_hit)
+        ln = _Lane(*args[:-10])
+        _small(ev, ln, *args[-10:], any_hit)
         return ln.astuple()
     state = dr.if_stmt(args=lane.astuple() + (mode, tiny, F, eF, tm, lo, hi, T.defined & T.bounded
-                                              & (T.s_m == 0), T.bounded),
-                       cond=rare, true_fn=small, false_fn=lambda *args: args[:-9],
+                                              & (T.s_m == 0), T.bounded, T.g_min),
+                       cond=rare, true_fn=small, false_fn=lambda *args: args[:-10],
                        label="lgshape_small")
     for f, v in zip(fields(lane), state):
         setattr(lane, f.name, v)
@@ -1047,13 +1048,14 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
 
 
 def _small(ev: _Evaluator, lane: _Lane, mode, tiny, F, eF, tm, lo, hi, zero_mid, bounded,
-           any_hit):
+           g_min, any_hit):
     """Intervals below the minimum width, and the edges of f's domain.
 
     A tiny interval (``tiny``) whose middle value is within its error bound
     of 0 (``zero_mid``) is a hit: a tangent touch or singular point, to float
     precision. Else F at both its ends decides (TINY_A, TINY_B: one point
-    each). Where one end lies outside f's domain, the root may lie between
+    each); a bracket found so is resolved where g keeps one sign on the
+    interval. Where one end lies outside f's domain, the root may lie between
     the domain's edge and the defined end: found by bisecting towards the
     edge, watching the sign (EDGE)."""
     import drjit as dr
@@ -1107,7 +1109,13 @@ def _small(ev: _Evaluator, lane: _Lane, mode, tiny, F, eF, tm, lo, hi, zero_mid,
     lane.s_lo = dr.select(tiny_bracket, s1, dr.select(edge_start, s_def,
                 dr.select(edge_bracket & ~left_def, s_here, lane.s_lo)))
     new_bracket = tiny_bracket | edge_bracket
-    lane.g_min = dr.select(new_bracket, 0.0, lane.g_min)
+    # a tiny bracket where g keeps one sign (``g_min``, kept from the tiny
+    # interval's test) is a bracket as the test's are: one simple root, its
+    # ends' signs from point values where the test's bounds could not tell
+    # them (a root within rounding of a float32 end of the bisection)
+    mono_bracket = tiny_bracket & (lane.g_min > 0)
+    lane.g_min = dr.select(new_bracket & ~mono_bracket, 0.0,
+                           dr.select(tiny_check, g_min, lane.g_min))
     lane.bounded = dr.select(tiny_check, bounded, lane.bounded)
     lane.F_a = dr.select(tiny_a, s_here,
                dr.select(edge_start, dr.select(s1 == 2, -1, 1), lane.F_a))
@@ -1117,8 +1125,9 @@ def _small(ev: _Evaluator, lane: _Lane, mode, tiny, F, eF, tm, lo, hi, zero_mid,
              dr.select(new_bracket | edge_start | edge, 0.5 * (t_lo + t_hi),
              dr.select(tiny_zero, tm, dr.select(tiny_at_end, at_end, t_n)))))
     lane.t_lo, lane.t_hi = t_lo, t_hi
-    # a bracket found here is unresolved too: decided at the minimum width
-    lane.unres = lane.unres | found | (new_bracket & (not any_hit))
+    # a bracket found here is unresolved too (decided at the minimum width),
+    # unless g keeps one sign there
+    lane.unres = lane.unres | found | (new_bracket & ~mono_bracket & (not any_hit))
     if any_hit:
         lane.t = dr.select(new_bracket, 0.5 * (t_lo + t_hi), lane.t)
         found = found | new_bracket
