@@ -305,25 +305,24 @@ class Walker:
 
     def __init__(self, g: DeviceGrid, o, d, t_end, slots: bool = True):
         import drjit as dr
-        self.g, self.o, self.d, self.t_end, self.slots = g, o, d, t_end, slots
+        self.g, self.d, self.t_end, self.slots = g, d, t_end, slots
         R = g.R
         cell_min = dr.minimum(dr.minimum(g.cell[0], g.cell[1]), g.cell[2])
         dlen = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         self.t_nudge = 1e-7 * cell_min / dr.select(dlen > 0, dlen, 1.0)  # fallback progress
         self.shift = [dr.select(d[a] > 0, nudge_cells(R),
                                 dr.select(d[a] < 0, -nudge_cells(R), 0.0)) for a in range(3)]
-        # reciprocals once per ray: a step multiplies (their rounding, a few
-        # ulps of a position, stays far below the nudge)
-        self.inv_cell = [1.0 / g.cell[a] for a in range(3)]
-        self.inv_d = [dr.select(d[a] == 0, 0.0, 1.0 / d[a]) for a in range(3)]
         self.max_steps = 4 * R + 16
-        # a step's chain of dependent operations, shortened: the position in
-        # cells is fma(t, d / cell, o / cell + shift), and a face's t
-        # fma(face, cell / d, -o / d)
-        self.d_cells = [d[a] * self.inv_cell[a] for a in range(3)]
-        self.o_cells = [o[a] * self.inv_cell[a] + self.shift[a] for a in range(3)]
-        self.cell_t = [g.cell[a] * self.inv_d[a] for a in range(3)]
-        self.o_t = [-o[a] * self.inv_d[a] for a in range(3)]
+        # quotients once per ray, so that a step's chain of dependent
+        # operations is short: the position in cells is fma(t, d / cell,
+        # o / cell + shift), a face's t fma(face, cell / d, -o / d) (their
+        # rounding, a few ulps of a position, stays far below the nudge)
+        inv_cell = [1.0 / g.cell[a] for a in range(3)]
+        inv_d = [dr.select(d[a] == 0, 0.0, 1.0 / d[a]) for a in range(3)]
+        self.d_cells = [d[a] * inv_cell[a] for a in range(3)]
+        self.o_cells = [o[a] * inv_cell[a] + self.shift[a] for a in range(3)]
+        self.cell_t = [g.cell[a] * inv_d[a] for a in range(3)]
+        self.o_t = [-o[a] * inv_d[a] for a in range(3)]
 
     def _cell(self, t):
         """The fine cell i of the ray at t (three Int32, located with the
@@ -369,12 +368,12 @@ class Walker:
         rounding must never stall a ray."""
         import drjit as dr
         Float = type(t)
-        g, o, d = self.g, self.o, self.d
+        d = self.d
         t_out = Float(dr.inf)
         for a in range(3):
-            face = Float(dr.select(d[a] > 0, hi_c[a], lo_c[a])) * g.cell[a]
-            t_a = dr.select((d[a] == 0) | out[a], dr.inf, (face - o[a]) * self.inv_d[a])
-            t_out = dr.minimum(t_out, t_a)
+            face = Float(dr.select(d[a] > 0, hi_c[a], lo_c[a]))
+            t_a = dr.fma(face, self.cell_t[a], self.o_t[a])
+            t_out = dr.minimum(t_out, dr.select((d[a] == 0) | out[a], dr.inf, t_a))
         return dr.maximum(t_out, t + dr.maximum(self.t_nudge, dr.abs(t) * 2.0**-22))
 
     def _dense_step(self, t, i, out, inside):
@@ -392,15 +391,9 @@ class Walker:
         b = type(i[0])((w >> ((c & 7) << 2)) & 15)
         hit = inside & (b == 0)
         # the exit of the cube of cells i - k .. i + k (k = b - 1; an
-        # occupied cell's own exit: k = 0), as in _exit
-        k = Float(dr.maximum(b - 1, 0))
-        d = self.d
-        t_out = Float(dr.inf)
-        for a in range(3):
-            face = Float(i[a]) + dr.select(d[a] > 0, k + 1, -k)
-            t_a = dr.fma(face, self.cell_t[a], self.o_t[a])
-            t_out = dr.minimum(t_out, dr.select((d[a] == 0) | out[a], dr.inf, t_a))
-        t_out = dr.maximum(t_out, t + dr.maximum(self.t_nudge, dr.abs(t) * 2.0**-22))
+        # occupied cell's own exit: k = 0)
+        k = dr.maximum(b - 1, 0)
+        t_out = self._exit(t, [a - k for a in i], [a + k + 1 for a in i], out)
         return hit, t_out, dr.zeros(UInt32, dr.width(t)), inside
 
     def next(self, t, active):

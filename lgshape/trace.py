@@ -618,23 +618,19 @@ class _Evaluator:
         if self.mode == "interval":
             # g's value only starts Newton in a bracket: the slope of F's
             # quadratic form at the middle (float32) serves, so the point
-            # here is F's alone
-            env, err = self._point_env(s)
-            F, eF = evaluate_with_error(self.f, env, err, self.K.m64)
+            # here is F's alone, unless an interval rule flattened the form
+            # (c1 = 0: sqrt, an SDF's distance)
             B = self._bounds(lo, hi, need)
-            # ... unless an interval rule flattened the form (sqrt, an SDF's
-            # distance): there g's float64 value, in a packet that needs it
-            Float64 = self.K.m64.Float
             flat = need & (B[4] == 0)
-            g = self.dr.if_stmt(args=(s,), cond=flat,
-                                true_fn=lambda s: evaluate(self.ge, env, self.K.m64),
-                                false_fn=lambda s: Float64(0), label="lgshape_slope")
-            return (F, eF, self.dr.select(flat, g, Float64(B[4])), None), B[:4] + B[5:]
+            F, eF, g, _ = self.point(s, rng, g_where=flat)
+            return (F, eF, self.dr.select(flat, g, K.m64.Float(B[4])), None), B[:4] + B[5:]
         return self.point(s, rng), self._bounds(lo, hi, need)
 
-    def point(self, s, rng):
+    def point(self, s, rng, g_where=None):
         """F and g at s in float64 with error bounds of F (and of g where the
-        search mode uses g's value in a proof)."""
+        search mode uses g's value in a proof). ``g_where`` (interval mode):
+        g only on those lanes (0 elsewhere), in a branch a packet takes only
+        where one of its lanes needs it."""
         K = self.K
         m64 = K.m64
         env, err = self._point_env(s)
@@ -644,7 +640,12 @@ class _Evaluator:
         if self.mode == "interval":
             # g's point value only steers Newton: no error bound needed.
             F, eF = evaluate_with_error(self.f, env, err, m64)
-            return F, eF, evaluate(self.ge, env, m64), None
+            if g_where is None:
+                return F, eF, evaluate(self.ge, env, m64), None
+            g = self.dr.if_stmt(args=(s,), cond=g_where,
+                                true_fn=lambda s: evaluate(self.ge, env, m64),
+                                false_fn=lambda s: m64.Float(0), label="lgshape_slope")
+            return F, eF, g, None
         (F, eF), (g, eg) = evaluate_with_error([self.f, self.ge], env, err, m64)
         return F, eF, g, eg
 

@@ -141,20 +141,31 @@ def quad_ends(seg: Segment, q: Quad):
     gives infinite bounds."""
     m = seg.m
     with m.errstate():
-        pa = q.c0 - q.c1 * seg.r + q.c2 * seg.r2
-        pb = q.c0 + q.c1 * seg.r + q.c2 * seg.r2
-        w = q.R + seg.slack(seg.mag(q))
-        out = []
-        for v in (pa - w, pa + w, pb - w, pb + w):
-            out.append(m.select(m.isnan(v), math.inf if len(out) % 2 else -math.inf, v))
-        return tuple(out)
+        pa, pb, w = _ends(seg, q)
+        return (_finite_lo(m, pa - w), _finite_hi(m, pa + w),
+                _finite_lo(m, pb - w), _finite_hi(m, pb + w))
+
+
+def _ends(seg, q):
+    """The quadratic's values at s = -r and +r, and the widening (R and the
+    rounding) of any value of q over the segment."""
+    pa = q.c0 - q.c1 * seg.r + q.c2 * seg.r2
+    pb = q.c0 + q.c1 * seg.r + q.c2 * seg.r2
+    return pa, pb, q.R + seg.slack(seg.mag(q))
+
+
+def _finite_lo(m, v):
+    return m.select(m.isnan(v), -math.inf, v)
+
+
+def _finite_hi(m, v):
+    return m.select(m.isnan(v), math.inf, v)
 
 
 def _range(seg, q):
-    m, r, r2 = seg.m, seg.r, seg.r2
+    m, r = seg.m, seg.r
     c0, c1, c2 = q.c0, q.c1, q.c2
-    pa = c0 - c1 * r + c2 * r2
-    pb = c0 + c1 * r + c2 * r2
+    pa, pb, w = _ends(seg, q)
     lo, hi = m.minimum(pa, pb), m.maximum(pa, pb)
     inside = m.abs(c1) < 2.0 * m.abs(c2) * r
     c2s = m.select(c2 != 0, c2, 1.0)
@@ -163,9 +174,7 @@ def _range(seg, q):
     pv = c0 - 0.25 * c1 * (c1 / c2s)
     lo = m.select(inside & (c2 > 0), m.minimum(lo, pv), lo)
     hi = m.select(inside & (c2 < 0), m.maximum(hi, pv), hi)
-    w = q.R + seg.slack(seg.mag(q))
-    lo, hi = lo - w, hi + w
-    return iv.Interval(m.select(m.isnan(lo), -math.inf, lo), m.select(m.isnan(hi), math.inf, hi))
+    return iv.Interval(_finite_lo(m, lo - w), _finite_hi(m, hi + w))
 
 
 def _add(seg, a, b, sign=1.0):
