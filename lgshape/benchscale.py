@@ -16,7 +16,11 @@ steady trace (median of timed samples after a warm-up) of the same camera
 rays. ``form``: ``tables`` (per-cell rows, lgshape's default) or
 ``unpruned`` (the whole expression in one fused kernel, ``tables=False``;
 only up to :data:`UNPRUNED_MAX` primitives, beyond which it runs for minutes
-and gigabytes).
+and gigabytes). References, traced by Mitsuba's Embree on the same rays
+(``scene.ray_intersect_preliminary``): ``mesh``, the marching-cubes mesh of f
+sampled at :data:`MESH_RES`^3 (both models), and ``spheres``, the union as N
+native Mitsuba spheres. They show how the cost of the scene itself grows
+with N (more of the rays hit, through more clutter), for the ratio targets.
 """
 from __future__ import annotations
 
@@ -32,6 +36,7 @@ import numpy as np
 
 NS = (10, 100, 1000, 10000)
 UNPRUNED_MAX = 100
+MESH_RES = 256
 QUICK_NS = (10, 100)
 TIMEOUT = 900
 
@@ -100,7 +105,9 @@ def worker(kind: str, n: int, form: str, res: int, repeats: int) -> dict:
     from drjit.llvm.ad import Array3f
     t0 = time.perf_counter()
     tf, (c, r) = model(kind, n)
-    surf = lgshape.Surface(tf, tables=(form == "tables"))
+    surf = lgshape.Surface(tf, tables=(form != "unpruned"))
+    if form in ("mesh", "spheres"):
+        return _reference(kind, n, form, surf, c, r, res, repeats, t0)
     build = time.perf_counter() - t0
     o, d = primary_rays(surf.bbox, res)
     O, D = Array3f(o.T.copy()), Array3f(d.T.copy())
@@ -131,7 +138,7 @@ def worker(kind: str, n: int, form: str, res: int, repeats: int) -> dict:
            "cells": int(len(surf.grid.cells))}
     if surf.cell_rows is not None:
         pairs = sum(len(p) for p in surf.cell_rows.pair_row)
-        rec["rows_per_cell"] = pairs / max(len(surf.grid.cells), 1)
+        rec["rows_per_cell"] = pairs / max(len(surf.cell_rows.row_cells), 1)
     tol = 1e-6 * surf.diagonal
     if kind == "union":
         ref = union_first_root(o, d, c, r)
@@ -149,14 +156,77 @@ def worker(kind: str, n: int, form: str, res: int, repeats: int) -> dict:
     return rec
 
 
+def _reference(kind, n, form, surf, c, r, res, repeats, t0) -> dict:
+    """A reference traced by Mitsuba's Embree (see the module notes)."""
+    import drjit as dr
+    import mitsuba as mi
+    from drjit.llvm.ad import Array3f
+
+    from .bench import VARIANT
+    from .benchspeed import mitsuba_mesh
+    from .camera import primary_rays
+    mi.set_variant(VARIANT)
+    if form == "spheres":
+        scene = mi.load_dict({"type": "scene", **{
+            f"s{i}": {"type": "sphere", "center": [float(v) for v in c[i]],
+                      "radius": float(r[i])} for i in range(n)}})
+    else:
+        from skimage.measure import marching_cubes
+        lo, hi = (np.asarray(v, np.float64) for v in surf.bbox)
+        ax = [np.linspace(lo[i], hi[i], MESH_RES) for i in range(3)]
+        vals = np.empty(MESH_RES ** 3)
+        z, y, x = (a.ravel() for a in np.meshgrid(ax[2], ax[1], ax[0], indexing="ij"))
+        step = 1 << 21
+        for s in range(0, len(x), step):
+            p = Array3f(x[s:s + step], y[s:s + step], z[s:s + step])
+            vals[s:s + step] = np.asarray(surf.value(p))
+        v, faces, _, _ = marching_cubes(vals.reshape((MESH_RES,) * 3), 0.0,
+                                        spacing=tuple((hi - lo)[::-1] / (MESH_RES - 1)))
+        scene = mi.load_dict({"type": "scene", "m": mitsuba_mesh(v[:, ::-1] + lo, faces)})
+    build = time.perf_counter() - t0
+    o, d = primary_rays(surf.bbox, res)
+    ray = mi.Ray3f(mi.Point3f(o.T.copy()), mi.Vector3f(d.T.copy()))
+
+    def trace():
+        pi = scene.ray_intersect_preliminary(ray)
+        dr.eval(pi.t)
+        dr.sync_thread()
+        return pi
+    t1 = time.perf_counter()
+    trace()
+    first = time.perf_counter() - t1
+    trace()
+    samples = []
+    for _ in range(repeats):
+        t1 = time.perf_counter()
+        pi = trace()
+        samples.append(time.perf_counter() - t1)
+    t = np.asarray(pi.t, np.float64)
+    hit = np.isfinite(t)
+    rec = {"model": kind, "n": n, "form": form, "build_s": build, "first_s": first,
+           "first_frame_s": build + first, "steady_s": float(np.median(samples)),
+           "rays": len(o), "hits": int(hit.sum()), "capped": 0, "iterations_mean": None,
+           "rss_gb": peak_rss_gb(), "reference": True}
+    if kind == "union":     # hit or miss as the analytic entry says (t not compared)
+        ref = union_first_root(o, d, c, r)
+        rec["wrong"] = int(np.sum(np.isfinite(ref) != hit))
+        rec["oracle"] = "analytic nearest ray-sphere entry: hit or miss only"
+    else:
+        rec["wrong"] = None
+    return rec
+
+
 def run(log, quick=False, res=512, repeats=5) -> list:
     """Every (model, N, form) in its own process; returns the records."""
     ns = QUICK_NS if quick else NS
     records = []
     for kind in ("union", "blend"):
         for n in ns:
-            for form in ("tables", "unpruned"):
+            for form in ("tables", "unpruned", "spheres", "mesh"):
                 if form == "unpruned" and n > (10 if quick else UNPRUNED_MAX):
+                    continue
+                if (form == "spheres" and kind != "union") or (form in ("spheres", "mesh")
+                                                               and (quick or n == 100)):
                     continue
                 with tempfile.TemporaryDirectory(prefix="lgshape-scale-") as home:
                     env = dict(os.environ, HOME=home)       # a cold Dr.Jit kernel cache
@@ -179,7 +249,7 @@ def run(log, quick=False, res=512, repeats=5) -> list:
                 records.append(rec)
                 log(f"scale {kind} N={n} {form}: build {rec['build_s']:.2f} s, first frame "
                     f"{rec['first_frame_s']:.2f} s, steady {rec['steady_s'] * 1e3:.1f} ms, "
-                    f"RSS {rec['rss_gb']:.2f} GB, wrong {rec['wrong']}")
+                    f"RSS {rec['rss_gb']:.2f} GB, hits {rec['hits']}, wrong {rec['wrong']}")
     return records
 
 
@@ -215,11 +285,14 @@ def chart(records, path):
     what = [("steady_s", "steady trace (s)"), ("first_frame_s", "first frame, cold cache (s)"),
             ("rss_gb", "peak RSS (GB)")]
     for ax, (key, label) in zip(axes, what):
+        if key != "steady_s":
+            ax.set_prop_cycle(None)
         for kind, colour in (("union", "C0"), ("blend", "C1")):
-            for form, style in (("tables", "-o"), ("unpruned", "--x")):
+            for form, style in (("tables", "-o"), ("unpruned", "--x"), ("mesh", ":s"),
+                                ("spheres", ":^")):
                 rs = sorted((r for r in records if r.get("model") == kind and r.get("form") == form
                              and "error" not in r), key=lambda r: r["n"])
-                if rs:
+                if rs and (key == "steady_s" or form in ("tables", "unpruned")):
                     ax.plot([r["n"] for r in rs], [r[key] for r in rs], style, color=colour,
                             label=f"{kind}, {form}")
         ax.set_xscale("log")
@@ -233,6 +306,10 @@ def chart(records, path):
     plt.close(fig)
 
 
+def _num(v, fmt=".1f") -> str:
+    return "–" if v is None else format(v, fmt)
+
+
 def _rows(r) -> str:
     return "–" if r.get("rows_per_cell") is None else f"{r['rows_per_cell']:.1f}"
 
@@ -242,9 +319,13 @@ def report(records, res) -> list:
          f"Union of N random spheres and blend of N soft blobs, {res} x {res} camera rays; each "
          "row in a fresh process (build, then the first frame with an empty Dr.Jit kernel "
          "cache: compile included; steady = median after warm-up). `tables`: per-cell rows "
-         "(lgshape's default); `unpruned`: the whole expression in one fused kernel. Oracles: "
-         "the union's analytic nearest ray-sphere entry on every ray; for the blend, a sign "
-         "change of the whole f (float64) at every hit (its misses are not checked).\n",
+         "(lgshape's default; rows/cell: rows per row cell of 2 x 2 x 2 cells); `unpruned`: "
+         "the whole expression in one fused kernel. References traced by Mitsuba's Embree "
+         f"on the same rays: `mesh`, the marching-cubes mesh of f at {MESH_RES}^3 samples; "
+         "`spheres`, the union as N native Mitsuba spheres. Oracles: "
+         "the union's analytic nearest ray-sphere entry on every ray (for the references, hit "
+         "or miss only); for the blend, a sign change of the whole f (float64) at every hit "
+         "(its misses are not checked).\n",
          "![scale](charts/scale.png)\n",
          "| model | N | form | build s | first frame s | steady ms | peak RSS GB | rows/cell | "
          "iterations/ray | hits | wrong | capped |",
@@ -255,8 +336,22 @@ def report(records, res) -> list:
             continue
         L.append(f"| {r['model']} | {r['n']} | {r['form']} | {r['build_s']:.2f} | "
                  f"{r['first_frame_s']:.2f} | {r['steady_s'] * 1e3:.1f} | {r['rss_gb']:.2f} | "
-                 f"{_rows(r)} | {r['iterations_mean']:.1f} | "
-                 f"{r['hits']} | {r['wrong']} | {r['capped']} |")
+                 f"{_rows(r)} | {_num(r['iterations_mean'])} | "
+                 f"{r['hits']} | {_num(r['wrong'], '')} | {r['capped']} |")
+    by = {(r["model"], r["n"], r["form"]): r for r in records if "error" not in r}
+    L += ["", "Against N = 10 of the same form: the steady trace of lgshape (`tables`) and of "
+          "the references, which show how the scene's own cost grows with N, and the rays "
+          "that hit (lgshape's):\n", "| model | ratio | N = 100 | N = 1000 | N = 10000 |",
+          "|---|---|---|---|---|"]
+    for kind in ("union", "blend"):
+        for form, key in (("tables", "steady_s"), ("mesh", "steady_s"), ("spheres", "steady_s"),
+                          ("tables", "hits")):
+            base = by.get((kind, 10, form))
+            if base:
+                cells = [f"{by[(kind, n, form)][key] / base[key]:.2f}x"
+                         if (kind, n, form) in by else "–" for n in (100, 1000, 10000)]
+                what = "rays that hit" if key == "hits" else f"steady trace, {form}"
+                L.append(f"| {kind} | {what} | " + " | ".join(cells) + " |")
     v = verdicts(records)
     if v:
         L += ["", "Targets (issue 9):\n", "| model | measure | value | target | met |",

@@ -172,11 +172,33 @@ DENSE_MAX_DEPTH = 8
 MAX_RINGS = 14
 
 
-def cell_slots(grid: PruningGrid, cells) -> np.ndarray:
-    """The brick-map slot (brick * 64 + bit) of occupied fine cells (n, 3):
-    where a table form keeps the cell's rows."""
-    b, bit = _brick_of(np.asarray(cells, np.int64), grid.resolution)
-    return (grid.top[b].astype(np.int64) - 1) * 64 + bit
+def row_slots(grid: PruningGrid, row_cells, up: int) -> np.ndarray:
+    """The slot of row cells (n, 3; 2^up fine cells on an edge, up <= 2)
+    where a table form keeps their rows: brick * 8^(2 - up) + the row
+    cell's place in its brick (:func:`row_slot` on the device); -1 for a
+    row cell in an empty brick."""
+    sub = BRICK >> up
+    rc = np.asarray(row_cells, np.int64)
+    b, _ = _brick_of(rc << up, grid.resolution)
+    loc = rc % sub
+    place = loc[:, 0] + sub * (loc[:, 1] + sub * loc[:, 2])
+    v = grid.top[b].astype(np.int64)
+    return np.where(v > 0, (v - 1) * sub ** 3 + place, -1)
+
+
+def row_slot(g, i, up: int, active):
+    """Device side of :func:`row_slot`: the slot of the row cell holding
+    fine cell i (three Int32) whose brick is occupied; one gather."""
+    import drjit as dr
+    Int32 = dr.int32_array_t(type(i[0]))
+    UInt32 = dr.uint32_array_t(type(i[0]))
+    nb = g.R // BRICK
+    b = UInt32(((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2))
+    v = dr.gather(Int32, g.top, b, active)
+    sub = BRICK >> up
+    place = [(a >> up) & (sub - 1) for a in i]
+    return UInt32(v - 1) * sub ** 3 + UInt32(place[0] + sub * (place[1] + sub * place[2])), \
+        active & (v > 0)
 
 
 def dense_rings(grid: PruningGrid) -> np.ndarray:
@@ -281,8 +303,8 @@ def next_occupied(g: DeviceGrid, o, d, t, t_end, active):
     the cells). A stateless DDA: each step locates the cell at t and moves t
     to the exit of that cell, or of the cube of empty bricks around it.
     Returns (found, t_enter, t_exit, stuck, slot) of that cell (``slot``:
-    its place in the brick map, brick * 64 + bit, see :func:`slot_at`);
-    lanes that pass t_end return found = False.
+    0; a table form's walker gives the cell's row cell, see
+    :meth:`Walker.next`); lanes that pass t_end return found = False.
 
     Locating is nudged forward in *position*: each coordinate moves by
     ``NUDGE`` cells in the direction of travel, so a point on a face (within
@@ -303,9 +325,9 @@ class Walker:
     per-ray constants computed once (a search calls :meth:`next` once per
     cell, inside its own loop)."""
 
-    def __init__(self, g: DeviceGrid, o, d, t_end, slots: bool = True):
+    def __init__(self, g: DeviceGrid, o, d, t_end, rows_up: int | None = None):
         import drjit as dr
-        self.g, self.d, self.t_end, self.slots = g, d, t_end, slots
+        self.g, self.d, self.t_end, self.up = g, d, t_end, rows_up
         R = g.R
         cell_min = dr.minimum(dr.minimum(g.cell[0], g.cell[1]), g.cell[2])
         dlen = dr.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
@@ -397,58 +419,58 @@ class Walker:
         return hit, t_out, dr.zeros(UInt32, dr.width(t)), inside
 
     def next(self, t, active):
-        """(found, t_enter, t_exit, stuck, slot), see :func:`next_occupied`."""
+        """(found, t_enter, t_exit, stuck, slot), see :func:`next_occupied`.
+        For a walker of a table form (``rows_up``): ``slot`` is the found
+        cell's row cell (:func:`row_slot`), and ``t_exit`` the exit of that
+        row cell, the end of the segment its rows hold for."""
         import drjit as dr
         Float = type(t)
         Int32 = dr.int32_array_t(Float)
         UInt32 = dr.uint32_array_t(Float)
         Bool = dr.mask_t(Float)
         max_steps = self.max_steps
-        dense = self.g.dense
 
-        def body(t, active, found, t_enter, t_exit, steps, slot):
-            hit, t_out, cell_slot, inside = self.step(t, active)
+        def body(t, active, found, t_enter, t_exit, steps):
+            hit, t_out, _, inside = self.step(t, active)
             t_enter = dr.select(hit, t, t_enter)
-            if not dense:       # (the dense table holds no slots: see below)
-                slot = dr.select(hit, cell_slot, slot)
             t_exit = dr.select(hit, t_out, t_exit)
             t = dr.select(inside & ~hit, t_out, t)
             steps = steps + 1
-            return (t, inside & ~hit & (steps < max_steps), found | hit, t_enter, t_exit, steps,
-                    slot)
+            return (t, inside & ~hit & (steps < max_steps), found | hit, t_enter, t_exit, steps)
 
         n = dr.width(t)
-        t_in, walking, found, t_enter, t_exit, steps, slot = dr.while_loop(
+        t_in, walking, found, t_enter, t_exit, steps = dr.while_loop(
             state=(Float(t), Bool(active), dr.zeros(Bool, n), dr.zeros(Float, n),
-                   dr.zeros(Float, n), dr.zeros(Int32, n), dr.zeros(UInt32, n)),
+                   dr.zeros(Float, n), dr.zeros(Int32, n)),
             cond=lambda t, active, *_: active, body=body, label="lgshape_dda")
         stuck = ~found & (steps >= max_steps) & (t_in <= self.t_end)
-        if dense and self.slots:
-            # the first cell's slot, from the brick map (the dense table
-            # holds none): the cell at t_enter, found as in step()
-            slot = self.slot_at(t_enter, found)
+        slot = dr.zeros(UInt32, n)
+        if self.up is not None:
+            # the row cell of the cell at t_enter (located as in step()),
+            # and where the ray leaves it
+            i, out = self._cell(t_enter)
+            up = self.up
+            slot, _ = row_slot(self.g, i, up, found)
+            t_row = self._exit(t_enter, [(a >> up) << up for a in i],
+                               [((a >> up) + 1) << up for a in i], out)
+            t_exit = dr.select(found, dr.maximum(t_exit, t_row), t_exit)
         return found, dr.select(found, t_enter, t_in), t_exit, stuck, slot
 
-    def slot_at(self, t, active):
-        """The brick-map slot of the (occupied) cell the ray is in at t."""
-        import drjit as dr
-        v, _, bit, _ = _cell_lookup(self.g, self._cell(t)[0], active)
-        return dr.uint32_array_t(type(t))(v - 1) * 64 + bit
 
-
-def slot_at(g: DeviceGrid, p):
-    """(slot, occupied) of the fine cell holding point p (grid-relative
-    coordinates, a list of three Dr.Jit arrays); slot = brick * 64 + bit."""
+def slot_at(g: DeviceGrid, p, up: int):
+    """(slot, occupied) of the row cell (:func:`row_slot`) of the fine cell
+    holding point p (grid-relative coordinates, a list of three Dr.Jit
+    arrays); ``occupied``: that fine cell is occupied."""
     import drjit as dr
     Float = type(p[0])
     Int32 = dr.int32_array_t(Float)
-    UInt32 = dr.uint32_array_t(Float)
     R = g.R
     fl = [dr.floor(p[a] / g.cell[a]) for a in range(3)]
     inside = (fl[0] >= 0) & (fl[1] >= 0) & (fl[2] >= 0) & (fl[0] < R) & (fl[1] < R) & (fl[2] < R)
     i = [dr.clip(Int32(v), 0, R - 1) for v in fl]
-    v, _, bit, occupied = _cell_lookup(g, i, inside)
-    return dr.select(occupied, UInt32(v - 1) * 64 + bit, 0), occupied
+    _, _, _, occupied = _cell_lookup(g, i, inside)
+    slot, _ = row_slot(g, i, up, occupied)
+    return dr.select(occupied, slot, 0), occupied
 
 
 def _cell_lookup(g: DeviceGrid, i, active):

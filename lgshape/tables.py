@@ -426,12 +426,22 @@ ROW_INFLATE = 2e-3
 _CHILDREN = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)])
 
 
+#: Row lists are kept per *row cell*, 2^ROW_UP fine cells on an edge (2: a
+#: brick of the pruning grid), so that a search segment runs from the first
+#: occupied fine cell to the row cell's exit, not one fine cell at a time.
+ROW_UP = 1
+
+
 @dataclass
 class CellRows:
-    """The build's result: occupied fine cells and, per group (in
-    :attr:`TableForm.groups` order), the rows kept on each of them as pairs
-    (index into ``cells``, row), sorted by cell then row."""
-    cells: np.ndarray          # (n, 3) int64
+    """The build's result: occupied fine cells, the row cells (2^``up``
+    fine cells on an edge, at level depth - up) that hold some, and, per
+    group (in :attr:`TableForm.groups` order), the rows kept on each row
+    cell as pairs (index into ``row_cells``, row), sorted by row cell then
+    row."""
+    cells: np.ndarray          # (n, 3) int64: occupied fine cells
+    row_cells: np.ndarray      # (m, 3) int64: row cells, at level depth - up
+    up: int                    # levels between the row cells and the fine cells
     pair_cell: list            # per group: (P,) int64
     pair_row: list             # per group: (P,) int64
     tested: int                # cells tested
@@ -522,8 +532,11 @@ def _prune_aggregate(agg, ivals, ncells):
     return keeps, a_lo, a_hi
 
 
-def build(tf: TableForm, lo, hi, depth: int) -> CellRows:
-    """Occupied cells and per-cell rows, level by level (see the module notes)."""
+def build(tf: TableForm, lo, hi, depth: int, up: int = ROW_UP) -> CellRows:
+    """Occupied cells and the rows of each row cell, level by level (see the
+    module notes): the row lists are those of level depth - up, the cells
+    those of the last level."""
+    up = min(up, depth)
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     groups = tf.groups
     cells = np.zeros((1, 3), np.int64)
@@ -565,6 +578,8 @@ def build(tf: TableForm, lo, hi, depth: int) -> CellRows:
         for gi in range(len(groups)):
             keep = occupied[pair_cell[gi]]
             pair_cell[gi], pair_row[gi] = rank[pair_cell[gi][keep]], pair_row[gi][keep]
+        if level == depth - up:
+            rows_at = (cells.copy(), [c.copy() for c in pair_cell], [r.copy() for r in pair_row])
         if level == depth:
             break
         cells = (2 * cells[:, None, :] + _CHILDREN[None]).reshape(-1, 3)
@@ -573,7 +588,20 @@ def build(tf: TableForm, lo, hi, depth: int) -> CellRows:
             r = np.repeat(pair_row[gi], 8)
             order = np.argsort(c, kind="stable")
             pair_cell[gi], pair_row[gi] = c[order], r[order]
-    return CellRows(cells, pair_cell, pair_row, tested, pairs_tested)
+    row_cells, pc, pr = rows_at
+    if up:      # the row cells that hold an occupied fine cell
+        used = np.unique(_code(cells >> up, 2 ** (depth - up)))
+        keep = np.isin(_code(row_cells, 2 ** (depth - up)), used)
+        rank = np.cumsum(keep) - 1
+        row_cells = row_cells[keep]
+        for gi in range(len(groups)):
+            k = keep[pc[gi]]
+            pc[gi], pr[gi] = rank[pc[gi][k]], pr[gi][k]
+    return CellRows(cells, row_cells, up, pc, pr, tested, pairs_tested)
+
+
+def _code(ijk, R):
+    return (ijk[:, 2] * R + ijk[:, 1]) * R + ijk[:, 0]
 
 
 # ---------------------------------------------------------------------------
@@ -631,12 +659,13 @@ class DeviceTables:
     def __init__(self, tf: TableForm, rows: CellRows, grid, centre, Float):
         import drjit as dr
         from .expr.diff import DX, DY, DZ, derivative
-        from .grid import cell_slots
+        from .grid import row_slots
         self.Float = Float
         self.Float64 = dr.float64_array_t(Float)
         UInt32 = dr.uint32_array_t(Float)
-        slot_of_cell = cell_slots(grid, rows.cells)
-        self.n_slots = int(len(grid.bricks) // 2) * 64
+        slot_of_cell = row_slots(grid, rows.row_cells, rows.up)
+        self.up = rows.up
+        self.n_slots = int(len(grid.bricks) // 2) * (8 ** (2 - rows.up))
         c64 = np.asarray(centre, np.float64)
         c32 = c64.astype(np.float32)
         self.centre64 = [dr.opaque(self.Float64, float(v)) for v in c64]

@@ -81,7 +81,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from . import bounds, grid as gridmod
-from .expr.quadratic import evaluate_quadratic, quad_ends, quad_env, quad_range
+from .expr.quadratic import evaluate_quadratic, quad_clip, quad_ends, quad_env, quad_range
 from .arraymath import NUMPY, DrJitMath
 from .expr import (Expr, evaluate, evaluate_with_error, gradient, hessian, parse,
                    ray_derivatives)
@@ -262,11 +262,15 @@ class Surface:
         self.centre = 0.5 * (lo + hi)
         if self.tables is None:
             self.local_expr = localize(f, self.centre, named_centre)
+            # f of degree <= 2: its quadratic form along a ray is exact (to
+            # rounding), and the search starts from the first root it allows
+            self.quadric = f.degree() <= 2
             self.g_expr, self.h_expr = ray_derivatives(self.local_expr)
             self.grid = gridmod.build(f, lo, hi, self.depth,
                                       mode="global" if L is not None else "local", L=L)
             self.cell_rows = None
         else:
+            self.quadric = False
             self.cell_rows = tablemod.build(self.tables, lo, hi, self.depth)
             self.grid = gridmod.brick_map(lo, hi, self.depth, self.cell_rows.cells,
                                           self.cell_rows.tested)
@@ -441,7 +445,7 @@ def _table_point(K, p, with_gradient=False):
         err[v] = K.m64.u * dr.abs(env[v])
     Float = type(p.x)
     slot, occupied = gridmod.slot_at(K.grid, [Float(env[v] + K.grid_origin[i])
-                                              for i, v in enumerate("xyz")])
+                                              for i, v in enumerate("xyz")], K.tables.up)
     all_rows = K.tables.all_rows(dr.width(p.x))
     cell_rows = K.tables.ranges(slot, occupied)
     rng = [(dr.select(occupied, s, s0), dr.select(occupied, e, e0))
@@ -582,7 +586,7 @@ class _Evaluator:
     def __init__(self, surf, K, rays: _Rays):
         import drjit as dr
         self.dr = dr
-        self.K, self.rays, self.mode = K, rays, surf.search
+        self.surf, self.K, self.rays, self.mode = surf, K, rays, surf.search
         self.tabled = K.tables is not None
         if not self.tabled:
             self.f, self.ge, self.he = surf.local_expr, surf.g_expr, surf.h_expr
@@ -609,12 +613,14 @@ class _Evaluator:
         ``need`` (of :meth:`_bounds`, less the slope, which stands for g's
         point value in the interval mode); a table form's, the ranges of g
         and F, in one loop over the cell's rows with the point values
-        (every lane: each row's parameters are gathered once)."""
+        (every lane: each row's parameters are gathered once). Returns
+        (point, bounds, c2): c2, the curvature of F's quadratic form at the
+        middle (interval mode; 0 elsewhere), for the start of Newton."""
         K, R = self.K, self.rays
         if self.tabled:
             env, err = self._point_env(s)
             F, eF, g, B = K.tables.point_segment(env, err, rng, K.m64, R.e32, R.d32, lo, hi, K.m)
-            return (F, eF, g, None), B
+            return (F, eF, g, None), B, 0.0
         if self.mode == "interval":
             # g's value only starts Newton in a bracket: the slope of F's
             # quadratic form at the middle (float32) serves, so the point
@@ -623,8 +629,9 @@ class _Evaluator:
             B = self._bounds(lo, hi, need)
             flat = need & (B[4] == 0)
             F, eF, g, _ = self.point(s, rng, g_where=flat)
-            return (F, eF, self.dr.select(flat, g, K.m64.Float(B[4])), None), B[:4] + B[5:]
-        return self.point(s, rng), self._bounds(lo, hi, need)
+            return (F, eF, self.dr.select(flat, g, K.m64.Float(B[4])), None), B[:4] + B[6:], \
+                self.dr.select(flat, 0.0, K.m64.Float(B[5]))
+        return self.point(s, rng), self._bounds(lo, hi, need), 0.0
 
     def point(self, s, rng, g_where=None):
         """F and g at s in float64 with error bounds of F (and of g where the
@@ -652,9 +659,10 @@ class _Evaluator:
     def _bounds(self, lo, hi, need):
         """Float32 bounds over the segment e + [lo, hi] d where ``need`` (a
         fused expression; a table form's come from :meth:`point_and_bounds`):
-        in the interval mode (g_lo, g_hi, F_lo, F_hi, c1, Fa_lo, Fa_hi,
+        in the interval mode (g_lo, g_hi, F_lo, F_hi, c1, c2, Fa_lo, Fa_hi,
         Fb_lo, Fb_hi): the ranges of g's and F's quadratic forms, the slope
-        of F's form at the middle, and its bounds at the two ends; in the
+        and curvature of F's form at the middle, and its bounds at the two
+        ends; in the
         Taylor mode (S_lo, S_hi), h's interval."""
         dr, K, R = self.dr, self.K, self.rays
         m, Float = K.m, K.m.Float
@@ -663,17 +671,30 @@ class _Evaluator:
                 seg, env = quad_env(m, R.e32, R.d32, lo, hi)
                 Qf, Qg = evaluate_quadratic([self.f, self.ge], env, seg)
                 Fq, gq = quad_range(seg, Qf), quad_range(seg, Qg)
-                return (gq.lo, gq.hi, Fq.lo, Fq.hi, Qf.c1) + quad_ends(seg, Qf)
+                return (gq.lo, gq.hi, Fq.lo, Fq.hi, Qf.c1, Qf.c2) + quad_ends(seg, Qf)
             inf = Float(dr.inf)
             return dr.if_stmt(args=(lo, hi), cond=need, true_fn=true_fn,
                               false_fn=lambda lo, hi: (Float(0), Float(0), -inf, inf, Float(0),
-                                                       -inf, inf, -inf, inf),
+                                                       Float(0), -inf, inf, -inf, inf),
                               label="lgshape_bounds")
         def true_fn(lo, hi):
             Si = bounds.segment_interval(self.he, R.e32, R.d32, lo, hi, m)
             return Si.lo, Si.hi
         return dr.if_stmt(args=(lo, hi), cond=need, true_fn=true_fn,
                           false_fn=lambda lo, hi: (Float(0), Float(0)), label="lgshape_bounds")
+
+    def clip(self, lo, hi, active):
+        """(free, first) for the segment [lo, hi] from F's quadratic form
+        (interval mode, plain expression; :func:`quad_clip`): ``free``
+        where it has no root, else no root before ``first`` (rounded down)."""
+        dr, K, R = self.dr, self.K, self.rays
+        seg, env = quad_env(K.m, R.e32, R.d32, lo, hi)
+        (Qf,) = evaluate_quadratic([self.f], env, seg)
+        free, s_first = quad_clip(seg, Qf)
+        tm = 0.5 * (lo + hi)
+        first = tm + s_first
+        first = dr.maximum(first - dr.abs(first) * 2.0**-22, lo)
+        return active & free, dr.select(active, first, lo)
 
     def _natural(self, lo, hi, need):
         """Float32 interval of F over the segment, where ``need``."""
@@ -840,6 +861,18 @@ def _newton(t, F, g, t_lo, t_hi):
     return dr.select((tn > t_lo) & (tn < t_hi), tn, 0.5 * (t_lo + t_hi))
 
 
+def _first_guess(t, F, g, c2, t_lo, t_hi):
+    """Where refinement starts in a new bracket: the root nearest t of the
+    quadratic F + g s + c2 s^2 (F's quadratic form about t, with F's point
+    value), where it lies in the bracket; else Newton's step from t."""
+    import drjit as dr
+    disc = g * g - 4.0 * c2 * F
+    den = g + dr.select(g >= 0, 1.0, -1.0) * dr.sqrt(dr.maximum(disc, 0.0))
+    tq = t - 2.0 * F / den
+    ok = (disc >= 0) & (den != 0) & (tq > t_lo) & (tq < t_hi)
+    return dr.select(ok, tq, _newton(t, F, g, t_lo, t_hi))
+
+
 def _prepare_rays(K, o, d, t_min, t_max, active, n):
     """Checked rays, clipped to the box in float64 and moved to its entry:
     (active, t_start, _Rays)."""
@@ -945,14 +978,25 @@ def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
     refine, no root or the cap."""
     import drjit as dr
     walker = gridmod.Walker(ev.K.grid, ev.rays.g_org, ev.rays.d32, ev.rays.span,
-                             slots=ev.tabled)
+                             rows_up=ev.K.tables.up if ev.tabled else None)
 
     def body(*state):
         lane = _Lane(*state)
         _walk(ev, walker, lane)
         _step(ev, lane, any_hit, max_it)
         return lane.astuple()
-    out = dr.while_loop(state=_Lane.start(ev, active).astuple(),
+    lane = _Lane.start(ev, active)
+    if ev.mode == "interval" and ev.surf.quadric:
+        # a quadric: F's quadratic form over the whole ray is exact (to
+        # rounding): it excludes a root, or tells where the first may be,
+        # without a step of the walk
+        free, first = ev.clip(dr.zeros(ev.K.m.Float, dr.width(ev.rays.span)), ev.rays.span,
+                              active)
+        lane.s_cur = first
+        lane.mode = dr.select(free, END, lane.mode)
+        lane.outcome = dr.select(free, NONE, lane.outcome)
+        lane.evals = lane.evals + dr.select(active, 1, 0)
+    out = dr.while_loop(state=lane.astuple(),
                         cond=lambda mode, *_: mode != END, body=body, label="lgshape_search")
     return _Lane(*out)
 
@@ -1000,7 +1044,7 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
     searching = mode == SEARCH
     lo, hi = _interval_of(lane.level, lane.idx, lane.a, lane.b)
     tm = 0.5 * (Float64(lo) + Float64(hi))
-    P, B = ev.point_and_bounds(dr.select(searching, tm, lane.t), lo, hi, lane.rng,
+    P, B, c2 = ev.point_and_bounds(dr.select(searching, tm, lane.t), lo, hi, lane.rng,
                                searching & (ev.mode != "global"))
     F, eF, g, eg = P
     T = ev.test(lo, hi, lane.rng, searching, P, B)
@@ -1026,7 +1070,7 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
         br = br | cross
         lane.outcome = dr.select(br, HIT, lane.outcome)
     else:
-        lane.t = dr.select(br, _newton(tm, F, g, T.b_lo, T.b_hi), lane.t)
+        lane.t = dr.select(br, _first_guess(tm, F, g, c2, T.b_lo, T.b_hi), lane.t)
         lane.outcome = dr.select(br, BRACKET, lane.outcome)
     lane.mode = dr.select(br, END, dr.select(T.empty & seg_done, SEEK, mode))
 

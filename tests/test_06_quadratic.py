@@ -16,8 +16,8 @@ from drjit.llvm import Float
 from lgshape.arraymath import NUMPY, DrJitMath
 from lgshape.bounds import segment_env
 from lgshape.expr import evaluate, evaluate_interval, parse, ray_derivatives
-from lgshape.expr.quadratic import (Quad, Segment, coordinate, evaluate_quadratic, quad_ends,
-                                    quad_env, quad_range)
+from lgshape.expr.quadratic import (Quad, Segment, coordinate, evaluate_quadratic, quad_clip,
+                                    quad_ends, quad_env, quad_range)
 from lgshape.interval import Interval
 
 SEGMENTS, SAMPLES = 2000, 33
@@ -238,3 +238,76 @@ def test06_sdf_grazing_a_wall(backend, rng):
     v = _values(f, o, d, t)
     assert np.all((lo[:, None] <= v) & (v <= hi[:, None]))
     assert np.all(lo > 0), (np.sum(lo <= 0), lo[lo <= 0][:3])
+
+
+def _clip(f, o, d, a, b, backend):
+    """quad_clip over the segments o + [a, b] d: (free, first t, tm, r)."""
+    if backend == "numpy64":
+        seg, env = quad_env(NUMPY, list(o.T), list(d.T), a, b)
+        (q,) = evaluate_quadratic([f], env, seg)
+        free, s1 = quad_clip(seg, q)
+        tm, r = 0.5 * (a + b), np.broadcast_to(seg.r, a.shape)
+        n = len(a)
+        return np.broadcast_to(free, n), tm + np.broadcast_to(s1, n), tm, r
+    m = DrJitMath(Float)
+    O, D = [Float(o[:, i]) for i in range(3)], [Float(d[:, i]) for i in range(3)]
+    A, B = Float(a), Float(b)
+    seg, env = quad_env(m, O, D, A, B)
+    (q,) = evaluate_quadratic([f], env, seg)
+    free, s1 = quad_clip(seg, q)
+    z = 0 * O[0]
+    tm = np.asarray(0.5 * (A + B), np.float64)
+    return (np.asarray(free | (z > 0)), tm + np.asarray(s1 + z, np.float64), tm,
+            np.asarray(seg.r + z, np.float64))
+
+
+@pytest.mark.parametrize("backend", ["numpy64", "drjit32"])
+@pytest.mark.parametrize("case", ALL_CASES, ids=case_id)
+def test07_clip_sound(case, backend, rng):
+    """``quad_clip``: where it says a segment is free of roots, f keeps one
+    strict sign on it; elsewhere f keeps one strict sign on [tm - r, first]
+    (the part it cuts off). Oracle: float64 values of f at 65 points of each
+    part (ends included; NaN, an undefined point, is no root). No tolerance."""
+    f, bbox = case_expr(*case)
+    o, d, a, b = _segments(rng, bbox, SEGMENTS)
+    if backend == "drjit32":
+        o, d, a, b = (v.astype(np.float32).astype(np.float64) for v in (o, d, a, b))
+    free, first, tm, r = _clip(f, o, d, a, b, backend)
+    end = np.where(free, tm + r, first)
+    cut = free | (first > tm - r)
+    u = np.linspace(0, 1, 65)[None, :]
+    t = (tm - r)[:, None] + u * (end - (tm - r))[:, None]
+    v = _values(f, o, d, t)
+    with np.errstate(invalid="ignore"):
+        pos, neg = (v > 0) | np.isnan(v), (v < 0) | np.isnan(v)
+    one_sign = pos.all(1) | neg.all(1)
+    assert one_sign[cut].all(), (f"{int((~one_sign & cut).sum())} cut parts hold a root or a "
+                                 f"zero of f")
+
+
+def test08_clip_finds_quadric_roots(rng):
+    """On a quadric the form is exact: the first root the clip allows is the
+    first root of f, to rounding. Oracle: the float64 roots of the quadratic
+    in t (closed form from three values); segments holding a root."""
+    f = parse("x^2 + 2*y^2 + 3*z^2 + x*y - y*z + 0.3*x - 0.8")
+    o, d, a, b = (v.astype(np.float32).astype(np.float64)
+                  for v in _segments(rng, ((-1.2,) * 3, (1.2,) * 3), SEGMENTS, scale=0.9))
+    t3 = np.stack([a, 0.5 * (a + b), b], 1)
+    v3 = _values(f, o, d, t3)
+    h = 0.5 * (b - a)
+    A = (v3[:, 0] - 2 * v3[:, 1] + v3[:, 2]) / (2 * h * h)
+    B = (v3[:, 2] - v3[:, 0]) / (2 * h)
+    C = v3[:, 1]                           # f(tm + s) = A s^2 + B s + C
+    disc = B * B - 4 * A * C
+    with np.errstate(invalid="ignore"):
+        s = np.sort(np.stack([(-B - np.sqrt(disc)) / (2 * A), (-B + np.sqrt(disc)) / (2 * A)], 1), 1)
+        s = np.where((s >= -h[:, None]) & (s <= h[:, None]), s, np.inf)
+    root = 0.5 * (a + b) + s.min(1)
+    has = np.isfinite(root) & (root > a + 1e-3 * (b - a))
+    for backend in ("numpy64", "drjit32"):
+        free, first, _, _ = _clip(f, o, d, a, b, backend)
+        assert not free[has].any()
+        assert np.all(first[has] <= root[has])
+        gap = (root - first)[has] / (b - a)[has]
+        assert np.median(gap) < 1e-2 and np.mean(gap < 0.05) > 0.9, np.percentile(gap, [50, 90])
+        assert free[~np.isfinite(s).any(1) & (disc < 0)].mean() > 0.9

@@ -122,6 +122,43 @@ def test01_matches_polynomial_roots(name, rng):
 
 FORMULAS["sphere"] = (2, lambda X, Y, Z: X**2 + Y**2 + Z**2 - 1)
 
+# Quadrics (degree 2): the search starts from the first root that F's exact
+# quadratic form along the whole ray allows (``quad_clip``), not from a walk.
+QUADRICS = {   # name: (f, F in float64, box half-size)
+    "ellipsoid": ("x^2 + 2*y^2 + 3*z^2 + x*y - y*z + 0.3*x - 0.8",
+                  lambda X, Y, Z: X**2 + 2 * Y**2 + 3 * Z**2 + X * Y - Y * Z + 0.3 * X - 0.8, 1.2),
+    "hyperboloid1": ("x^2 + y^2 - z^2 - 0.25", lambda X, Y, Z: X**2 + Y**2 - Z**2 - 0.25, 1.0),
+    "hyperboloid2": ("z^2 - x^2 - 0.5*y^2 - 0.1", lambda X, Y, Z: Z**2 - X**2 - 0.5 * Y**2 - 0.1,
+                     1.0),
+    "cylinder": ("(x - 0.1)^2 / 0.64 + y^2 - 0.5", lambda X, Y, Z: (X - 0.1)**2 / 0.64 + Y**2 - 0.5,
+                 1.0),
+    "paraboloid": ("x^2 + y^2 - z - 0.5", lambda X, Y, Z: X**2 + Y**2 - Z - 0.5, 1.0),
+}
+
+
+def _spec(name):
+    """A library surface, or one of QUADRICS."""
+    if name in QUADRICS:
+        f, _, h = QUADRICS[name]
+        return lgshape.surfaces.Implicit(name, lgshape.parse(f), ((-h,) * 3, (h,) * 3))
+    return lgshape.surfaces.LIBRARY[name]()
+
+
+@pytest.mark.parametrize("name", sorted(QUADRICS))
+def test01b_quadrics_match_polynomial_roots(name, rng):
+    """Quadrics, whose search starts from the first root F's quadratic form
+    allows over the whole ray (no walk where it excludes a root): 100k rays
+    (outside, inside, grazing) against float64 polynomial roots under the
+    rules of the module docstring."""
+    _, F, _ = QUADRICS[name]
+    spec = _spec(name)
+    surf = lgshape.Surface(spec)
+    assert surf.quadric
+    lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
+    counts = _check(surf, F, 2, *_rays(rng, F, 2, lo, hi), min_simple=20_000,
+                    groups=np.repeat(["outside", "inside", "grazing"], [N_OUT, N_IN, N_GRAZE]))
+    assert counts["none"] > 5_000, counts
+
 
 @pytest.mark.parametrize("search,depth", [("interval", 7), ("taylor", 6), ("global", 6)])
 @pytest.mark.parametrize("name", ["chmutov6", "barth_sextic", "sphere"])
@@ -281,7 +318,8 @@ def test03_close_root_pairs(case, rng):
     assert cls["pair"] == len(o32), f"rays outside the pair class: {cls}"
 
 
-@pytest.mark.parametrize("name", ["tangle", "barth_sextic", "chmutov6", "kummer", "clebsch"])
+@pytest.mark.parametrize("name", ["tangle", "barth_sextic", "chmutov6", "kummer", "clebsch",
+                                  "ellipsoid", "hyperboloid1"])
 def test04_occluded_matches_polynomial_roots(name, rng):
     """``occluded`` (an any-hit query, which stops at a bracket or at a
     sign change of F with g bounded) on 40k rays (outside, inside, grazing)
@@ -293,8 +331,8 @@ def test04_occluded_matches_polynomial_roots(name, rng):
     1e-4 diagonals of the real axis there must not. Rays with only
     unverified roots (tangent touches, roots at an end) are left out, and
     counted."""
-    degree, F = FORMULAS[name]
-    spec = lgshape.surfaces.LIBRARY[name]()
+    degree, F = FORMULAS[name] if name in FORMULAS else (2, QUADRICS[name][1])
+    spec = _spec(name)
     surf = lgshape.Surface(spec)
     lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
     diag = float(np.linalg.norm(hi - lo))

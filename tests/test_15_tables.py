@@ -79,24 +79,27 @@ def models(rng):
 
 @pytest.mark.parametrize("name", ["union", "smooth_union", "blend"])
 def test_cell_rows_are_exact(name):
-    """Oracle: f over every row (float64). At random points of the occupied
-    cells, the kept rows give exactly f; in the pruned cells f has one sign."""
+    """Oracle: f over every row (float64). At random points of the row cells
+    (the cells whose rows a search segment uses, holding every occupied
+    cell), the kept rows give exactly f; in the pruned cells f has one sign."""
     rng = np.random.default_rng(5)
     tf = models(rng)[name]
     lo, hi = (np.array(v) for v in tf.bbox)
     depth = 5
     cr = tables.build(tf, lo, hi, depth)
     size = (hi - lo) / 2 ** depth
-    k = rng.integers(0, len(cr.cells), 6000)
-    # over the inflated cell: the search evaluates a cell's rows that far out
+    assert cr.up == tables.ROW_UP
+    assert {tuple(c_) for c_ in cr.cells >> cr.up} == {tuple(c_) for c_ in cr.row_cells}
+    k = rng.integers(0, len(cr.row_cells), 6000)
+    # over the inflated row cell: the search evaluates its rows that far out
     infl = tables.ROW_INFLATE
-    p = lo + (cr.cells[k] + rng.uniform(-infl, 1 + infl, (len(k), 3))) * size
+    p = lo + (cr.row_cells[k] + rng.uniform(-infl, 1 + infl, (len(k), 3))) * size * 2 ** cr.up
     full = tables.evaluate_points(tf, p)
     # f over each point's cell rows only, folded in the kernel's order
     agg = tf.aggregates[0]
     acc = np.full(len(k), np.nan)
     for gi, (_, g) in enumerate(tf.groups):
-        start = np.searchsorted(cr.pair_cell[gi], np.arange(len(cr.cells) + 1))
+        start = np.searchsorted(cr.pair_cell[gi], np.arange(len(cr.row_cells) + 1))
         for step in range(int(np.diff(start).max(initial=0))):
             idx = start[k] + step
             ok = idx < start[k + 1]
@@ -112,7 +115,7 @@ def test_cell_rows_are_exact(name):
                                                "z": p[:, 2]}, NUMPY), len(k))
     assert np.array_equal(kept, full) or np.abs(kept - full).max() <= 1e-12 * (1 + np.abs(full).max())
     n_pairs = sum(len(r_) for r_ in cr.pair_row)
-    assert n_pairs < 0.5 * len(cr.cells) * tf.rows, "the rows were not pruned per cell"
+    assert n_pairs < 0.5 * len(cr.row_cells) * tf.rows, "the rows were not pruned per cell"
     # pruned cells: one sign at their corners and inner points
     cells = rng.integers(0, 2 ** depth, (3000, 3))
     occ = {tuple(c_) for c_ in cr.cells}

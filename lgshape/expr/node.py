@@ -106,6 +106,32 @@ class Expr:
     def size(self) -> int:
         return len(self.nodes())
 
+    def degree(self) -> float:
+        """The degree of f as a polynomial in x, y, z (inf where it is not
+        one: sqrt, sin, min, division by a non-constant, ...). Structural:
+        x * x - x * x has degree 2."""
+        deg = {}
+        for n in self.nodes():
+            a = [deg[id(c)] for c in n.args]
+            if n.op == "var":
+                d = 1 if n.param in ("x", "y", "z") else 0
+            elif not a:
+                d = 0
+            elif n.op in ("add", "sub"):
+                d = max(a)
+            elif n.op == "mul":
+                d = a[0] + a[1]
+            elif n.op == "neg":
+                d = a[0]
+            elif n.op == "pow":
+                d = a[0] * n.param if n.param >= 0 else (0 if a[0] == 0 else math.inf)
+            elif n.op == "div":
+                d = a[0] if a[1] == 0 else math.inf
+            else:
+                d = 0 if max(a) == 0 else math.inf
+            deg[id(n)] = d
+        return deg[id(self)]
+
 
 def topological(roots) -> list[Expr]:
     """Every node below ``roots``, each once, children before parents (the

@@ -146,6 +146,49 @@ def quad_ends(seg: Segment, q: Quad):
                 _finite_lo(m, pb - w), _finite_hi(m, pb + w))
 
 
+def quad_clip(seg: Segment, q: Quad):
+    """(free, s_first): ``free`` where q's enclosure excludes 0 over the
+    whole segment (no root); else ``s_first`` >= -r with no root of the
+    enclosure in [-r, s_first) (-r where none is proven).
+
+    The candidate is the first root of q(s) = +-w (w: R and the rounding),
+    from the side q's enclosure starts on, backed off a little; it is kept
+    only where the range of the quadratic over [-r, s_first], computed as
+    :func:`quad_range` does (ends and vertex, widened by w), excludes 0.
+    The solve is a proposal; the range is the proof."""
+    m = seg.m
+    with m.errstate():
+        r = seg.r
+        c0, c1, c2 = q.c0, q.c1, q.c2
+        pa, pb, w = _ends(seg, q)
+        whole = _range(seg, q)
+        free = (whole.lo > 0) | (whole.hi < 0)
+        up = pa - w > 0                 # the enclosure starts above 0
+        # first root of c2 s^2 + c1 s + (c0 -+ w) after -r (stable form)
+        c = c0 - m.select(up, w, -w)
+        disc = c1 * c1 - 4.0 * c2 * c
+        sq = m.sqrt(m.maximum(disc, 0.0))
+        qq = -0.5 * (c1 + m.select(c1 >= 0, sq, -sq))
+        s1 = m.select(c2 != 0, qq / m.select(c2 != 0, c2, 1.0), -c / m.select(c1 != 0, c1, 1.0))
+        s2 = m.select(qq != 0, c / m.select(qq != 0, qq, 1.0), s1)
+        big = 2.0 * r + 1.0
+        s1 = m.select((m.abs(s1) < math.inf) & (s1 > -r), s1, big)
+        s2 = m.select((m.abs(s2) < math.inf) & (s2 > -r) & (c2 != 0), s2, big)
+        cand = m.minimum(m.minimum(s1, s2), r)
+        cand = cand - 1e-3 * (cand + r) - 2.0 * m.eps * r
+        # the proof: q's range over [-r, cand]
+        qc = c0 + cand * (c1 + cand * c2)
+        lo, hi = m.minimum(pa, qc), m.maximum(pa, qc)
+        c2s = m.select(c2 != 0, c2, 1.0)
+        sv = -0.5 * c1 / c2s
+        inside = (c2 != 0) & (sv > -r) & (sv < cand)
+        pv = c0 - 0.25 * c1 * (c1 / c2s)
+        lo = m.select(inside, m.minimum(lo, pv), lo)
+        hi = m.select(inside, m.maximum(hi, pv), hi)
+        ok = (cand > -r) & m.select(up, lo - w > 0, hi + w < 0) & ((pa - w > 0) | (pa + w < 0))
+        return free, m.select(ok, cand, -r)
+
+
 def _ends(seg, q):
     """The quadratic's values at s = -r and +r, and the widening (R and the
     rounding) of any value of q over the segment."""
