@@ -684,17 +684,27 @@ class _Evaluator:
                           false_fn=lambda lo, hi: (Float(0), Float(0)), label="lgshape_bounds")
 
     def clip(self, lo, hi, active):
-        """(free, first) for the segment [lo, hi] from F's quadratic form
-        (interval mode, plain expression; :func:`quad_clip`): ``free``
-        where it has no root, else no root before ``first`` (rounded down)."""
+        """What F's quadratic form over the segment [lo, hi] tells
+        (interval mode, plain expression; :func:`quad_clip`): (free, first,
+        crossed, b_lo, b_hi, s_lo). ``free``: no root; else no root before
+        ``first`` (float32, rounded down); ``crossed``: f continuous (a
+        polynomial) and of the other sign at b_hi, so the first root is in
+        the bracket [b_lo, b_hi] (float64), where F's sign is s_lo at b_lo."""
         dr, K, R = self.dr, self.K, self.rays
+        Float64 = K.m64.Float
         seg, env = quad_env(K.m, R.e32, R.d32, lo, hi)
         (Qf,) = evaluate_quadratic([self.f], env, seg)
-        free, s_first = quad_clip(seg, Qf)
+        free, s_first, s_cross, crossed = quad_clip(seg, Qf)
         tm = 0.5 * (lo + hi)
         first = tm + s_first
         first = dr.maximum(first - dr.abs(first) * 2.0**-22, lo)
-        return active & free, dr.select(active, first, lo)
+        # the bracket at the points the proofs hold for (float64, outward)
+        b_lo = _down(Float64(tm) + Float64(s_first))
+        b_hi = _up(Float64(tm) + Float64(s_cross))
+        s_lo = dr.select(Qf.c0 - Qf.c1 * seg.r + Qf.c2 * seg.r2 > 0, 1, -1)
+        # (the root must lie in the ray's range [lo, hi] too)
+        crossed = active & ~free & crossed & (b_lo >= Float64(lo)) & (b_hi <= Float64(hi))
+        return active & free, dr.select(active, first, lo), crossed, b_lo, b_hi, s_lo
 
     def _natural(self, lo, hi, need):
         """Float32 interval of F over the segment, where ``need``."""
@@ -990,11 +1000,17 @@ def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
         # a quadric: F's quadratic form over the whole ray is exact (to
         # rounding): it excludes a root, or tells where the first may be,
         # without a step of the walk
-        free, first = ev.clip(dr.zeros(ev.K.m.Float, dr.width(ev.rays.span)), ev.rays.span,
-                              active)
+        free, first, crossed, b_lo, b_hi, s_lo = ev.clip(
+            dr.zeros(ev.K.m.Float, dr.width(ev.rays.span)), ev.rays.span, active)
         lane.s_cur = first
-        lane.mode = dr.select(free, END, lane.mode)
-        lane.outcome = dr.select(free, NONE, lane.outcome)
+        lane.mode = dr.select(free | crossed, END, lane.mode)
+        # a bracket of the first root: refined (a hit for an any-hit query)
+        lane.outcome = dr.select(free, NONE, dr.select(crossed, HIT if any_hit else BRACKET,
+                                                       lane.outcome))
+        lane.t_lo = dr.select(crossed, b_lo, lane.t_lo)
+        lane.t_hi = dr.select(crossed, b_hi, lane.t_hi)
+        lane.s_lo = dr.select(crossed, s_lo, lane.s_lo)
+        lane.t = dr.select(crossed, 0.5 * (b_lo + b_hi), lane.t)
         lane.evals = lane.evals + dr.select(active, 1, 0)
     out = dr.while_loop(state=lane.astuple(),
                         cond=lambda mode, *_: mode != END, body=body, label="lgshape_search")

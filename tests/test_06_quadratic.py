@@ -241,23 +241,26 @@ def test06_sdf_grazing_a_wall(backend, rng):
 
 
 def _clip(f, o, d, a, b, backend):
-    """quad_clip over the segments o + [a, b] d: (free, first t, tm, r)."""
+    """quad_clip over the segments o + [a, b] d: (free, first t, cross t,
+    crossed, tm, r)."""
     if backend == "numpy64":
         seg, env = quad_env(NUMPY, list(o.T), list(d.T), a, b)
         (q,) = evaluate_quadratic([f], env, seg)
-        free, s1 = quad_clip(seg, q)
+        free, s1, s2, crossed = quad_clip(seg, q)
         tm, r = 0.5 * (a + b), np.broadcast_to(seg.r, a.shape)
         n = len(a)
-        return np.broadcast_to(free, n), tm + np.broadcast_to(s1, n), tm, r
+        return (np.broadcast_to(free, n), tm + np.broadcast_to(s1, n), tm + np.broadcast_to(s2, n),
+                np.broadcast_to(crossed, n), tm, r)
     m = DrJitMath(Float)
     O, D = [Float(o[:, i]) for i in range(3)], [Float(d[:, i]) for i in range(3)]
     A, B = Float(a), Float(b)
     seg, env = quad_env(m, O, D, A, B)
     (q,) = evaluate_quadratic([f], env, seg)
-    free, s1 = quad_clip(seg, q)
+    free, s1, s2, crossed = quad_clip(seg, q)
     z = 0 * O[0]
     tm = np.asarray(0.5 * (A + B), np.float64)
-    return (np.asarray(free | (z > 0)), tm + np.asarray(s1 + z, np.float64), tm,
+    return (np.asarray(free | (z > 0)), tm + np.asarray(s1 + z, np.float64),
+            tm + np.asarray(s2 + z, np.float64), np.asarray(crossed | (z > 0)), tm,
             np.asarray(seg.r + z, np.float64))
 
 
@@ -266,13 +269,15 @@ def _clip(f, o, d, a, b, backend):
 def test07_clip_sound(case, backend, rng):
     """``quad_clip``: where it says a segment is free of roots, f keeps one
     strict sign on it; elsewhere f keeps one strict sign on [tm - r, first]
-    (the part it cuts off). Oracle: float64 values of f at 65 points of each
-    part (ends included; NaN, an undefined point, is no root). No tolerance."""
+    (the part it cuts off), and where it says the enclosure has crossed, f
+    at ``cross`` has the other sign (or is undefined). Oracle: float64
+    values of f at 65 points of each part (ends included; NaN, an undefined
+    point, is no root) and at ``cross``. No tolerance."""
     f, bbox = case_expr(*case)
     o, d, a, b = _segments(rng, bbox, SEGMENTS)
     if backend == "drjit32":
         o, d, a, b = (v.astype(np.float32).astype(np.float64) for v in (o, d, a, b))
-    free, first, tm, r = _clip(f, o, d, a, b, backend)
+    free, first, cross, crossed, tm, r = _clip(f, o, d, a, b, backend)
     end = np.where(free, tm + r, first)
     cut = free | (first > tm - r)
     u = np.linspace(0, 1, 65)[None, :]
@@ -283,6 +288,10 @@ def test07_clip_sound(case, backend, rng):
     one_sign = pos.all(1) | neg.all(1)
     assert one_sign[cut].all(), (f"{int((~one_sign & cut).sum())} cut parts hold a root or a "
                                  f"zero of f")
+    vx = _values(f, o, d, cross[:, None])[:, 0]
+    with np.errstate(invalid="ignore"):
+        other = np.isnan(vx) | np.where(v[:, 0] > 0, vx < 0, vx > 0)
+    assert other[crossed].all(), f"{int((~other & crossed).sum())} crossings without a sign change"
 
 
 def test08_clip_finds_quadric_roots(rng):
@@ -305,9 +314,12 @@ def test08_clip_finds_quadric_roots(rng):
     root = 0.5 * (a + b) + s.min(1)
     has = np.isfinite(root) & (root > a + 1e-3 * (b - a))
     for backend in ("numpy64", "drjit32"):
-        free, first, _, _ = _clip(f, o, d, a, b, backend)
+        free, first, cross, crossed, _, _ = _clip(f, o, d, a, b, backend)
         assert not free[has].any()
         assert np.all(first[has] <= root[has])
+        # the crossing: the first root lies in (first, cross]
+        assert np.all(cross[has & crossed] >= root[has & crossed])
+        assert np.mean(crossed[has]) > 0.9
         gap = (root - first)[has] / (b - a)[has]
         assert np.median(gap) < 1e-2 and np.mean(gap < 0.05) > 0.9, np.percentile(gap, [50, 90])
         assert free[~np.isfinite(s).any(1) & (disc < 0)].mean() > 0.9

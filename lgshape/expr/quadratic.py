@@ -147,15 +147,21 @@ def quad_ends(seg: Segment, q: Quad):
 
 
 def quad_clip(seg: Segment, q: Quad):
-    """(free, s_first): ``free`` where q's enclosure excludes 0 over the
-    whole segment (no root); else ``s_first`` >= -r with no root of the
-    enclosure in [-r, s_first) (-r where none is proven).
+    """What q's enclosure tells about the first root on the segment:
+    (free, first, cross, crossed).
 
-    The candidate is the first root of q(s) = +-w (w: R and the rounding),
-    from the side q's enclosure starts on, backed off a little; it is kept
-    only where the range of the quadratic over [-r, s_first], computed as
-    :func:`quad_range` does (ends and vertex, widened by w), excludes 0.
-    The solve is a proposal; the range is the proof."""
+    - ``free``: it excludes 0 over the whole segment (no root);
+    - ``first`` >= -r: no root in [-r, first) (-r where none is proven);
+    - ``crossed``: q's enclosure at ``cross`` > first has the sign opposite
+      to the one it starts with, so where f is continuous (a polynomial) a
+      root lies in (first, cross], the first one.
+
+    The candidates are the first roots of q(s) = +-w (w: R and the
+    rounding), from the side q's enclosure starts on, each moved a little
+    outward; ``first`` is kept only where the range of the quadratic over
+    [-r, first], computed as :func:`quad_range` does (ends and vertex,
+    widened by w), excludes 0, and ``cross`` only where q's enclosure there
+    excludes 0. The solves are proposals; the ranges are the proofs."""
     m = seg.m
     with m.errstate():
         r = seg.r
@@ -164,18 +170,10 @@ def quad_clip(seg: Segment, q: Quad):
         whole = _range(seg, q)
         free = (whole.lo > 0) | (whole.hi < 0)
         up = pa - w > 0                 # the enclosure starts above 0
-        # first root of c2 s^2 + c1 s + (c0 -+ w) after -r (stable form)
-        c = c0 - m.select(up, w, -w)
-        disc = c1 * c1 - 4.0 * c2 * c
-        sq = m.sqrt(m.maximum(disc, 0.0))
-        qq = -0.5 * (c1 + m.select(c1 >= 0, sq, -sq))
-        s1 = m.select(c2 != 0, qq / m.select(c2 != 0, c2, 1.0), -c / m.select(c1 != 0, c1, 1.0))
-        s2 = m.select(qq != 0, c / m.select(qq != 0, qq, 1.0), s1)
-        big = 2.0 * r + 1.0
-        s1 = m.select((m.abs(s1) < math.inf) & (s1 > -r), s1, big)
-        s2 = m.select((m.abs(s2) < math.inf) & (s2 > -r) & (c2 != 0), s2, big)
-        cand = m.minimum(m.minimum(s1, s2), r)
-        cand = cand - 1e-3 * (cand + r) - 2.0 * m.eps * r
+        w_up = m.select(up, w, -w)
+        s1 = _root_after(m, c2, c1, c0 - w_up, -r, r)
+        cand = m.minimum(s1, r)
+        cand = cand - 16.0 * m.eps * (m.abs(cand) + r)
         # the proof: q's range over [-r, cand]
         qc = c0 + cand * (c1 + cand * c2)
         lo, hi = m.minimum(pa, qc), m.maximum(pa, qc)
@@ -186,7 +184,27 @@ def quad_clip(seg: Segment, q: Quad):
         lo = m.select(inside, m.minimum(lo, pv), lo)
         hi = m.select(inside, m.maximum(hi, pv), hi)
         ok = (cand > -r) & m.select(up, lo - w > 0, hi + w < 0) & ((pa - w > 0) | (pa + w < 0))
-        return free, m.select(ok, cand, -r)
+        # where the enclosure is surely past 0: the first root of q = -+w
+        s2 = _root_after(m, c2, c1, c0 + w_up, s1, r)
+        cross = s2 + 16.0 * m.eps * (m.abs(s2) + r)
+        qx = c0 + cross * (c1 + cross * c2)
+        crossed = ok & (s2 <= r) & (cross <= r) & m.select(up, qx + w < 0, qx - w > 0)
+        return free, m.select(ok, cand, -r), cross, crossed
+
+
+def _root_after(m, a, b, c, after, r):
+    """The smallest root > after of a s^2 + b s + c (stable form), or a
+    value past r where there is none."""
+    disc = b * b - 4.0 * a * c
+    sq = m.sqrt(m.maximum(disc, 0.0))
+    qq = -0.5 * (b + m.select(b >= 0, sq, -sq))
+    big = 2.0 * r + 1.0
+    s1 = m.select(a != 0, qq / m.select(a != 0, a, 1.0), -c / m.select(b != 0, b, 1.0))
+    s2 = m.select(qq != 0, c / m.select(qq != 0, qq, 1.0), s1)
+    real = (disc >= 0) | (a == 0)
+    s1 = m.select(real & (m.abs(s1) < math.inf) & (s1 > after), s1, big)
+    s2 = m.select(real & (m.abs(s2) < math.inf) & (s2 > after) & (a != 0), s2, big)
+    return m.minimum(s1, s2)
 
 
 def _ends(seg, q):
