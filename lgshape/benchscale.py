@@ -95,6 +95,20 @@ def peak_rss_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
 
+def _timed(trace, repeats):
+    """(first call s, steady samples s after a warm-up, the last result)."""
+    t1 = time.perf_counter()
+    out = trace()
+    first = time.perf_counter() - t1
+    trace()
+    samples = []
+    for _ in range(repeats):
+        t1 = time.perf_counter()
+        out = trace()
+        samples.append(time.perf_counter() - t1)
+    return first, samples, out
+
+
 def worker(kind: str, n: int, form: str, res: int, repeats: int) -> dict:
     """One measurement (run in its own process)."""
     import drjit as dr
@@ -118,15 +132,7 @@ def worker(kind: str, n: int, form: str, res: int, repeats: int) -> dict:
         dr.eval(out.t, out.t64, out.hit, out.capped, out.iterations)
         dr.sync_thread()
         return out
-    t1 = time.perf_counter()
-    out = trace()
-    first = time.perf_counter() - t1
-    trace()
-    samples = []
-    for _ in range(repeats):
-        t1 = time.perf_counter()
-        out = trace()
-        samples.append(time.perf_counter() - t1)
+    first, samples, out = _timed(trace, repeats)
     t64, hit = np.asarray(out.t64), np.asarray(out.hit)
     rss = peak_rss_gb()                                 # before the oracle
     rec = {"model": kind, "n": n, "form": form, "build_s": build,
@@ -192,15 +198,7 @@ def _reference(kind, n, form, surf, c, r, res, repeats, t0) -> dict:
         dr.eval(pi.t)
         dr.sync_thread()
         return pi
-    t1 = time.perf_counter()
-    trace()
-    first = time.perf_counter() - t1
-    trace()
-    samples = []
-    for _ in range(repeats):
-        t1 = time.perf_counter()
-        pi = trace()
-        samples.append(time.perf_counter() - t1)
+    first, samples, pi = _timed(trace, repeats)
     t = np.asarray(pi.t, np.float64)
     hit = np.isfinite(t)
     rec = {"model": kind, "n": n, "form": form, "build_s": build, "first_s": first,

@@ -662,8 +662,7 @@ class _Evaluator:
         in the interval mode (g_lo, g_hi, F_lo, F_hi, c1, c2, Fa_lo, Fa_hi,
         Fb_lo, Fb_hi): the ranges of g's and F's quadratic forms, the slope
         and curvature of F's form at the middle, and its bounds at the two
-        ends; in the
-        Taylor mode (S_lo, S_hi), h's interval."""
+        ends; in the Taylor mode (S_lo, S_hi), h's interval."""
         dr, K, R = self.dr, self.K, self.rays
         m, Float = K.m, K.m.Float
         if self.mode == "interval":
@@ -981,11 +980,11 @@ class _Lane:
 
 
 def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
-    """The loop over the occupied cells a ray crosses, nearest first. One
-    iteration: :func:`_walk` to the next cell where a lane needs one, one
-    evaluation (the interval test of the current interval, or a point), and
-    :func:`_step`, the search's decision. Ends with a hit, a bracket to
-    refine, no root or the cap."""
+    """The loop over the occupied cells a ray crosses, nearest first (for a
+    quadric, after :func:`_clip_quadric`). One iteration: :func:`_walk` to
+    the next cell where a lane needs one, one evaluation (the interval test
+    of the current interval, or a point), and :func:`_step`, the search's
+    decision. Ends with a hit, a bracket to refine, no root or the cap."""
     import drjit as dr
     walker = gridmod.Walker(ev.K.grid, ev.rays.g_org, ev.rays.d32, ev.rays.span,
                              rows_up=ev.K.tables.up if ev.tabled else None)
@@ -997,24 +996,30 @@ def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
         return lane.astuple()
     lane = _Lane.start(ev, active)
     if ev.mode == "interval" and ev.surf.quadric:
-        # a quadric: F's quadratic form over the whole ray is exact (to
-        # rounding): it excludes a root, or tells where the first may be,
-        # without a step of the walk
-        free, first, crossed, b_lo, b_hi, s_lo = ev.clip(
-            dr.zeros(ev.K.m.Float, dr.width(ev.rays.span)), ev.rays.span, active)
-        lane.s_cur = first
-        lane.mode = dr.select(free | crossed, END, lane.mode)
-        # a bracket of the first root: refined (a hit for an any-hit query)
-        lane.outcome = dr.select(free, NONE, dr.select(crossed, HIT if any_hit else BRACKET,
-                                                       lane.outcome))
-        lane.t_lo = dr.select(crossed, b_lo, lane.t_lo)
-        lane.t_hi = dr.select(crossed, b_hi, lane.t_hi)
-        lane.s_lo = dr.select(crossed, s_lo, lane.s_lo)
-        lane.t = dr.select(crossed, 0.5 * (b_lo + b_hi), lane.t)
-        lane.evals = lane.evals + dr.select(active, 1, 0)
+        _clip_quadric(ev, lane, active, any_hit)
     out = dr.while_loop(state=lane.astuple(),
                         cond=lambda mode, *_: mode != END, body=body, label="lgshape_search")
     return _Lane(*out)
+
+
+def _clip_quadric(ev: _Evaluator, lane: _Lane, active, any_hit):
+    """Clip, for a quadric (f of degree <= 2), before any walk: F's
+    quadratic form over the whole ray is exact (to rounding). Where it
+    excludes a root, no root; where it brackets the first root, refinement
+    (for an any-hit query, a hit); else the walk starts where the first
+    root may be (:meth:`_Evaluator.clip`)."""
+    import drjit as dr
+    free, first, crossed, b_lo, b_hi, s_lo = ev.clip(
+        dr.zeros(ev.K.m.Float, dr.width(ev.rays.span)), ev.rays.span, active)
+    lane.s_cur = first
+    lane.mode = dr.select(free | crossed, END, lane.mode)
+    lane.outcome = dr.select(free, NONE, dr.select(crossed, HIT if any_hit else BRACKET,
+                                                   lane.outcome))
+    lane.t_lo = dr.select(crossed, b_lo, lane.t_lo)
+    lane.t_hi = dr.select(crossed, b_hi, lane.t_hi)
+    lane.s_lo = dr.select(crossed, s_lo, lane.s_lo)
+    lane.t = dr.select(crossed, 0.5 * (b_lo + b_hi), lane.t)
+    lane.evals = lane.evals + dr.select(active, 1, 0)
 
 
 def _walk(ev: _Evaluator, walker, lane: _Lane):
@@ -1061,7 +1066,7 @@ def _step(ev: _Evaluator, lane: _Lane, any_hit, max_it):
     lo, hi = _interval_of(lane.level, lane.idx, lane.a, lane.b)
     tm = 0.5 * (Float64(lo) + Float64(hi))
     P, B, c2 = ev.point_and_bounds(dr.select(searching, tm, lane.t), lo, hi, lane.rng,
-                               searching & (ev.mode != "global"))
+                                   searching & (ev.mode != "global"))
     F, eF, g, eg = P
     T = ev.test(lo, hi, lane.rng, searching, P, B)
     busy = mode != END

@@ -56,7 +56,11 @@ def test01_quick_run_records(quick):
             if m != "lgshape":
                 assert 0.0 <= rec["agree"] <= 1.0
         lg = r["lgshape"]
-        assert lg["evals_per_ray"] > 0 and lg["iterations_per_ray"] > 0
+        assert lg["evals_per_ray"] > 0
+        # a quadric's rays may be answered from the whole ray's quadratic
+        # form before any search iteration (the sphere's shadow rays)
+        quadric = lgshape.Surface(lgshape.surfaces.LIBRARY[r["surface"]]()).quadric
+        assert lg["iterations_per_ray"] > 0 or (quadric and lg["iterations_per_ray"] == 0), r
         assert lg["capped"] == 0, r                    # no library ray reaches the cap
         assert r["sphere_trace"]["evals_per_ray"] > 0
         assert r["mesh"]["evals_per_ray"] is None and r["mesh"]["triangles"] > 0
