@@ -187,18 +187,28 @@ def row_slots(grid: PruningGrid, row_cells, up: int) -> np.ndarray:
 
 
 def row_slot(g, i, up: int, active):
-    """Device side of :func:`row_slot`: the slot of the row cell holding
-    fine cell i (three Int32) whose brick is occupied; one gather."""
+    """Device side of :func:`row_slots`: (slot, brick occupied) of the row
+    cell holding fine cell i (three Int32); one gather (the top entry)."""
     import drjit as dr
-    Int32 = dr.int32_array_t(type(i[0]))
+    v = dr.gather(dr.int32_array_t(type(i[0])), g.top,
+                  dr.uint32_array_t(type(i[0]))(_brick_index(i, g.R)), active)
+    return _row_place(v, i, up), active & (v > 0)
+
+
+def _row_place(v, i, up: int):
+    """The slot of fine cell i's row cell in the brick of top entry v."""
+    import drjit as dr
     UInt32 = dr.uint32_array_t(type(i[0]))
-    nb = g.R // BRICK
-    b = UInt32(((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2))
-    v = dr.gather(Int32, g.top, b, active)
     sub = BRICK >> up
     place = [(a >> up) & (sub - 1) for a in i]
-    return UInt32(v - 1) * sub ** 3 + UInt32(place[0] + sub * (place[1] + sub * place[2])), \
-        active & (v > 0)
+    return UInt32(v - 1) * sub ** 3 + UInt32(place[0] + sub * (place[1] + sub * place[2]))
+
+
+def _brick_index(i, R: int):
+    """The brick of fine cell i (three integer arrays, numpy or Dr.Jit) in
+    the top grid: (K nb + J) nb + I with I = i >> 2 per axis."""
+    nb = R // BRICK
+    return ((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2)
 
 
 def dense_rings(grid: PruningGrid) -> np.ndarray:
@@ -235,9 +245,7 @@ def dense_index(i, R: int):
     in :func:`dense_table` (word c >> 3, bits 4 (c & 7) up):
     ((K nb + J) nb + I) 64 + (k 4 + j) 4 + i, with (I, i) = divmod(i, 4)
     per axis."""
-    nb = R // BRICK
-    brick = ((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2)
-    return brick * 64 + (((i[2] & 3) << 4) | ((i[1] & 3) << 2) | (i[0] & 3))
+    return _brick_index(i, R) * 64 + (((i[2] & 3) << 4) | ((i[1] & 3) << 2) | (i[0] & 3))
 
 
 MAX_SKIP = 8
@@ -468,9 +476,8 @@ def slot_at(g: DeviceGrid, p, up: int):
     fl = [dr.floor(p[a] / g.cell[a]) for a in range(3)]
     inside = (fl[0] >= 0) & (fl[1] >= 0) & (fl[2] >= 0) & (fl[0] < R) & (fl[1] < R) & (fl[2] < R)
     i = [dr.clip(Int32(v), 0, R - 1) for v in fl]
-    _, _, _, occupied = _cell_lookup(g, i, inside)
-    slot, _ = row_slot(g, i, up, occupied)
-    return dr.select(occupied, slot, 0), occupied
+    v, _, _, occupied = _cell_lookup(g, i, inside)
+    return dr.select(occupied, _row_place(v, i, up), 0), occupied
 
 
 def _cell_lookup(g: DeviceGrid, i, active):
@@ -479,9 +486,7 @@ def _cell_lookup(g: DeviceGrid, i, active):
     import drjit as dr
     Int32 = dr.int32_array_t(type(i[0]))
     UInt32 = dr.uint32_array_t(type(i[0]))
-    nb = g.R // BRICK
-    b = UInt32(((i[2] >> 2) * nb + (i[1] >> 2)) * nb + (i[0] >> 2))
-    v = dr.gather(Int32, g.top, b, active)
+    v = dr.gather(Int32, g.top, UInt32(_brick_index(i, g.R)), active)
     brick = active & (v > 0)
     bit = UInt32((i[0] & 3) + BRICK * ((i[1] & 3) + BRICK * (i[2] & 3)))
     word = dr.gather(UInt32, g.bricks, UInt32(2 * (v - 1)) + (bit >> 5), brick)

@@ -426,8 +426,8 @@ ROW_INFLATE = 2e-3
 _CHILDREN = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)])
 
 
-#: Row lists are kept per *row cell*, 2^ROW_UP fine cells on an edge (2: a
-#: brick of the pruning grid), so that a search segment runs from the first
+#: Row lists are kept per *row cell*, 2^ROW_UP fine cells on an edge (0: a
+#: fine cell, 2: a brick of the pruning grid, at most), so that a search segment runs from the first
 #: occupied fine cell to the row cell's exit, not one fine cell at a time.
 ROW_UP = 1
 
@@ -536,6 +536,8 @@ def build(tf: TableForm, lo, hi, depth: int, up: int = ROW_UP) -> CellRows:
     """Occupied cells and the rows of each row cell, level by level (see the
     module notes): the row lists are those of level depth - up, the cells
     those of the last level."""
+    if not 0 <= up <= 2:
+        raise ValueError(f"up must be 0, 1 or 2 (row cells within a brick), got {up}")
     up = min(up, depth)
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
     groups = tf.groups

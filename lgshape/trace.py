@@ -693,14 +693,14 @@ class _Evaluator:
         Float64 = K.m64.Float
         seg, env = quad_env(K.m, R.e32, R.d32, lo, hi)
         (Qf,) = evaluate_quadratic([self.f], env, seg)
-        free, s_first, s_cross, crossed = quad_clip(seg, Qf)
+        free, s_first, s_cross, crossed, up = quad_clip(seg, Qf)
         tm = 0.5 * (lo + hi)
         first = tm + s_first
         first = dr.maximum(first - dr.abs(first) * 2.0**-22, lo)
         # the bracket at the points the proofs hold for (float64, outward)
         b_lo = _down(Float64(tm) + Float64(s_first))
         b_hi = _up(Float64(tm) + Float64(s_cross))
-        s_lo = dr.select(Qf.c0 - Qf.c1 * seg.r + Qf.c2 * seg.r2 > 0, 1, -1)
+        s_lo = dr.select(up, 1, -1)
         # (the root must lie in the ray's range [lo, hi] too)
         crossed = active & ~free & crossed & (b_lo >= Float64(lo)) & (b_hi <= Float64(hi))
         return active & free, dr.select(active, first, lo), crossed, b_lo, b_hi, s_lo

@@ -246,7 +246,7 @@ def _clip(f, o, d, a, b, backend):
     if backend == "numpy64":
         seg, env = quad_env(NUMPY, list(o.T), list(d.T), a, b)
         (q,) = evaluate_quadratic([f], env, seg)
-        free, s1, s2, crossed = quad_clip(seg, q)
+        free, s1, s2, crossed, _ = quad_clip(seg, q)
         tm, r = 0.5 * (a + b), np.broadcast_to(seg.r, a.shape)
         n = len(a)
         return (np.broadcast_to(free, n), tm + np.broadcast_to(s1, n), tm + np.broadcast_to(s2, n),
@@ -256,7 +256,7 @@ def _clip(f, o, d, a, b, backend):
     A, B = Float(a), Float(b)
     seg, env = quad_env(m, O, D, A, B)
     (q,) = evaluate_quadratic([f], env, seg)
-    free, s1, s2, crossed = quad_clip(seg, q)
+    free, s1, s2, crossed, _ = quad_clip(seg, q)
     z = 0 * O[0]
     tm = np.asarray(0.5 * (A + B), np.float64)
     return (np.asarray(free | (z > 0)), tm + np.asarray(s1 + z, np.float64),

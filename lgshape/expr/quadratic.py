@@ -148,13 +148,15 @@ def quad_ends(seg: Segment, q: Quad):
 
 def quad_clip(seg: Segment, q: Quad):
     """What q's enclosure tells about the first root on the segment:
-    (free, first, cross, crossed).
+    (free, first, cross, crossed, up).
 
     - ``free``: it excludes 0 over the whole segment (no root);
     - ``first`` >= -r: no root in [-r, first) (-r where none is proven);
     - ``crossed``: q's enclosure at ``cross`` > first has the sign opposite
       to the one it starts with, so where f is continuous (a polynomial) a
-      root lies in (first, cross], the first one.
+      root lies in (first, cross], the first one;
+    - ``up``: the enclosure starts above 0 (where ``first`` > -r, q > 0 on
+      [-r, first]).
 
     The candidates are the first roots of q(s) = +-w (w: R and the
     rounding), from the side q's enclosure starts on, each moved a little
@@ -166,7 +168,7 @@ def quad_clip(seg: Segment, q: Quad):
     with m.errstate():
         r = seg.r
         c0, c1, c2 = q.c0, q.c1, q.c2
-        pa, pb, w = _ends(seg, q)
+        pa, _, w = _ends(seg, q)
         whole = _range(seg, q)
         free = (whole.lo > 0) | (whole.hi < 0)
         up = pa - w > 0                 # the enclosure starts above 0
@@ -183,13 +185,13 @@ def quad_clip(seg: Segment, q: Quad):
         pv = c0 - 0.25 * c1 * (c1 / c2s)
         lo = m.select(inside, m.minimum(lo, pv), lo)
         hi = m.select(inside, m.maximum(hi, pv), hi)
-        ok = (cand > -r) & m.select(up, lo - w > 0, hi + w < 0) & ((pa - w > 0) | (pa + w < 0))
+        ok = (cand > -r) & m.select(up, lo - w > 0, hi + w < 0)
         # where the enclosure is surely past 0: the first root of q = -+w
         s2 = _root_after(m, c2, c1, c0 + w_up, s1, r)
         cross = s2 + 16.0 * m.eps * (m.abs(s2) + r)
         qx = c0 + cross * (c1 + cross * c2)
         crossed = ok & (s2 <= r) & (cross <= r) & m.select(up, qx + w < 0, qx - w > 0)
-        return free, m.select(ok, cand, -r), cross, crossed
+        return free, m.select(ok, cand, -r), cross, crossed, up
 
 
 def _root_after(m, a, b, c, after, r):
