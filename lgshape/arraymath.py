@@ -12,6 +12,7 @@ does not recompile a kernel).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -39,9 +40,14 @@ class NumpyMath:
         return np.errstate(all="ignore")
 
 
+@dataclass(init=False, eq=False)
 class DrJitMath:
-    """Dr.Jit arrays of floating-point type ``Float`` (32 or 64 bit)."""
+    """Dr.Jit arrays of floating-point type ``Float`` (32 or 64 bit).
+
+    A dataclass whose one field is its cache of opaque constants, so that a
+    frozen function (``dr.freeze``) taking it as an input sees them."""
     inf = math.inf
+    _consts: dict
 
     def __init__(self, Float):
         import drjit as dr

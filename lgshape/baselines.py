@@ -11,7 +11,9 @@
   seed's point.
 
 Both return a :class:`lgshape.trace.RayResult` (``unresolved`` unused) and
-count one evaluation per step.
+count one evaluation per step. :func:`frozen` runs either as a frozen
+function, as :meth:`lgshape.Surface.trace` runs the search (the benchmark
+times every method so: no call pays for tracing its Python code again).
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ import math
 from .arraymath import DrJitMath
 from .expr import evaluate
 from .grid import clip_to_box
-from .trace import RayResult, _rays
+from .trace import RayResult, _rays, call_frozen
 
 
 def _setup(surface, o, d, t_min, t_max):
@@ -71,6 +73,22 @@ def sphere_trace(surface, o, d, L: float, relax: float = 1.0, eps: float | None 
     hit = hit | ((r < eps) & (t0 <= t1) & (t <= t1))
     capped = (steps >= max_steps) & ~hit
     return RayResult(dr.select(hit, t, math.inf), hit, steps, steps, capped, dr.zeros(Bool, n))
+
+
+def frozen(method, surface, **settings):
+    """``method`` (:func:`sphere_trace` or :func:`march`) for one surface and
+    its settings as a frozen function (``dr.freeze``) of (o, d, t_max): a
+    call after the first for the same ray count launches the recorded
+    kernels. o, d: Dr.Jit arrays; t_max: a Dr.Jit array or a scalar."""
+    import drjit as dr
+
+    def run(o, d, t_max, n):
+        return method(surface, o, d, t_max=t_max, **settings)
+    fn = dr.freeze(run, warn_after=2**30)
+
+    def call(o, d, t_max=math.inf):
+        return call_frozen(fn, o, d, t_max, max(dr.width(o), dr.width(d)))
+    return call
 
 
 def march(surface, o, d, step: float, bisections: int = 24, t_min=0.0, t_max=math.inf) -> RayResult:

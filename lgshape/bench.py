@@ -185,11 +185,11 @@ def sphere_runner(spec, rays, eps, relax, L=None):
     surf = _plain_surface(spec)
     L = global_L(spec) if L is None else L
     build = time.perf_counter() - t0
-    eps_t = eps * surf.diagonal
+    st = baselines.frozen(baselines.sphere_trace, surf, L=L, relax=relax, eps=eps * surf.diagonal,
+                          t_min=rays.t_min)
 
     def run():
-        r = baselines.sphere_trace(surf, rays.o_dr, rays.d_dr, L, relax=relax, eps=eps_t,
-                                   t_min=rays.t_min)
+        r = st(rays.o_dr, rays.d_dr)
         return r.t, r.hit, r.evals, r.capped
     method = "sphere_trace" if relax == 1.0 else "sphere_trace_relaxed"
     return Runner(method, f"eps {eps:g} diag", run, _read_ray_result, _f_normals(surf, rays),
@@ -199,10 +199,11 @@ def sphere_runner(spec, rays, eps, relax, L=None):
 def march_runner(spec, rays, divisions):
     from . import baselines
     surf = _plain_surface(spec)
-    step = surf.diagonal / divisions
+    march = baselines.frozen(baselines.march, surf, step=surf.diagonal / divisions,
+                             t_min=rays.t_min)
 
     def run():
-        r = baselines.march(surf, rays.o_dr, rays.d_dr, step, t_min=rays.t_min)
+        r = march(rays.o_dr, rays.d_dr)
         return r.t, r.hit, r.evals, r.capped
     return Runner("march", f"step diag/{divisions}", run, _read_ray_result,
                   _f_normals(surf, rays), 0, 0.0)

@@ -244,16 +244,16 @@ def sphere_method(surf_plain, L, rays, shadow: ShadowRays | None = None) -> Meth
     eps = ST_EPS * surf_plain.diagonal
     setting = f"global L {L:.4g}, eps {ST_EPS:g} diag"
     extra = {"lipschitz_L": L}
+    st = baselines.frozen(baselines.sphere_trace, surf_plain, L=L, relax=1.0, eps=eps)
     if shadow is None:
         def run():
-            r = baselines.sphere_trace(surf_plain, rays.o_dr, rays.d_dr, L, relax=1.0, eps=eps)
+            r = st(rays.o_dr, rays.d_dr)
             return r.hit, r.t, r.evals, r.iterations, r.capped
         return Method(_runner("sphere_trace", setting, run, extra=extra))
     s = shadow.rays
 
     def trace():
-        return baselines.sphere_trace(surf_plain, s.o_dr, s.d_dr, L, relax=1.0, eps=eps,
-                                      t_max=shadow.t_max_dr)
+        return st(s.o_dr, s.d_dr, shadow.t_max_dr)
 
     def stats():
         r = trace()

@@ -130,6 +130,7 @@ def brick_map(lo, hi, depth, cells, tested) -> PruningGrid:
 # Traversal (Dr.Jit)
 # ---------------------------------------------------------------------------
 
+@dataclass(init=False, eq=False)
 class DeviceGrid:
     """The pruning grid as Dr.Jit arrays of one backend, with opaque scalars
     so that another grid of the same depth reuses the compiled kernels.
@@ -142,7 +143,13 @@ class DeviceGrid:
       four bits each (:func:`dense_table`), which the walk reads with one
       gather per step (on the CPUs measured, a gather costs about as much
       as a whole evaluation of a small f) and whose rings let it skip empty
-      space in any direction. Finer grids walk the brick map."""
+      space in any direction. Finer grids walk the brick map.
+
+    Its fields are its Dr.Jit arrays (a frozen function's inputs)."""
+    top: object
+    bricks: object
+    cell: list
+    table: object
 
     def __init__(self, grid: PruningGrid, Float):
         import drjit as dr
@@ -153,8 +160,7 @@ class DeviceGrid:
         self.bricks = UInt32(grid.bricks) if len(grid.bricks) else dr.zeros(UInt32, 2)
         self.cell = [dr.opaque(Float, float(v)) for v in grid.cell_size]
         self.dense = grid.depth <= DENSE_MAX_DEPTH
-        if self.dense:
-            self.table = UInt32(dense_table(grid))
+        self.table = UInt32(dense_table(grid)) if self.dense else None
 
 
 #: The dense walk table is built up to this depth (256^3 cells, 8 MB; 1 MB

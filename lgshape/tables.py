@@ -642,6 +642,7 @@ def evaluate_points(tf: TableForm, p, chunk: int = 256) -> np.ndarray:
 # Device side (Dr.Jit): per-cell row ranges and the evaluations over them
 # ---------------------------------------------------------------------------
 
+@dataclass(init=False, eq=False)
 class DeviceTables:
     """A TableForm's rows on one Dr.Jit backend, ordered by pruning cell.
 
@@ -656,7 +657,12 @@ class DeviceTables:
     evaluated at x = x_local + c with c an opaque value (its rounding in the
     error bound and the intervals), not folded into the templates, so the
     compiled code depends on the templates only: another table of the same
-    templates (other rows, values, box) reuses the compiled kernels."""
+    templates (other rows, values, box) reuses the compiled kernels.
+
+    Its fields are its Dr.Jit arrays (a frozen function's inputs)."""
+    centre64: list
+    centre32: list
+    groups: list
 
     def __init__(self, tf: TableForm, rows: CellRows, grid, centre, Float):
         import drjit as dr

@@ -101,6 +101,10 @@ SEARCH_MODES = ("interval", "taylor", "global")
 #: Points sampled to check hand-given L and G, and that f is defined somewhere.
 CHECK_SAMPLES = 4096
 
+#: Recordings kept per frozen query (one per ray count and argument layout;
+#: least recently used dropped), see :meth:`Surface.trace`.
+FREEZE_LIMIT = 8
+
 
 @dataclass
 class RayResult:
@@ -275,6 +279,10 @@ class Surface:
             self.grid = gridmod.brick_map(lo, hi, self.depth, self.cell_rows.cells,
                                           self.cell_rows.tested)
         self._device = {}
+        self._frozen = {}
+        #: Run standalone queries as frozen functions (see :meth:`trace`);
+        #: False traces every call.
+        self.freeze = True
 
     @property
     def expr(self) -> Expr:
@@ -412,11 +420,39 @@ class Surface:
         ``o``, ``d``: Dr.Jit Array3f (any backend) or numpy arrays of shape
         (N, 3) (one ray: (3,)); t_min, t_max, active: scalars or arrays of N.
         Arrays of one ray broadcast against N; other mismatched sizes raise
-        ValueError. Empty input gives empty output."""
+        ValueError. Empty input gives empty output.
+
+        A standalone query (Dr.Jit rays, outside a symbolic loop, call or
+        conditional; t_min, t_max and active Python scalars or Dr.Jit arrays)
+        runs as a frozen function (``dr.freeze``): its first call for a ray
+        count and argument layout traces the search, later ones launch the
+        recorded kernels without tracing it again (the tracing costs 1-4 ms
+        a call, as much as the search of a 512^2 frame on simple surfaces).
+        Its inputs are evaluated first and its outputs are evaluated arrays.
+        ``freeze = False`` traces every call (inside symbolic code it always
+        does, and its work fuses with the caller's)."""
         o, d, n = _rays(o, d, t_min, t_max, active)
         if n == 0:
             return _empty_result(type(o.x))
+        if self.freeze and _freezable(o, d, t_min, t_max, active):
+            return call_frozen(self._frozen_search(any_hit),
+                               self._kernel_data(type(o.x)), o, d, t_min, t_max, active, n)
         return _search(self, o, d, t_min, t_max, active, any_hit)
+
+    def _frozen_search(self, any_hit):
+        """The search as a frozen function, one per query kind. Its inputs:
+        the kernel data (so that the grid, the tables and the opaque
+        constants are read on every launch), the rays, and the ray count
+        (recorded kernels are sized by it)."""
+        fn = self._frozen.get(any_hit)
+        if fn is None:
+            import drjit as dr
+
+            def search(K, o, d, t_min, t_max, active, n):
+                return _search(self, o, d, t_min, t_max, active, any_hit)
+            fn = self._frozen[any_hit] = dr.freeze(search, limit=FREEZE_LIMIT,
+                                                   warn_after=2**30)
+        return fn
 
 
 @dataclass
@@ -511,6 +547,32 @@ def _rays(o, d, t_min, t_max, active):
         other = "o" if k != "o" and sizes["o"] == n else "d"
         raise ValueError(f"mismatched sizes: {k} has {bad[k]} rays, {other} has {n}")
     return o, d, n
+
+
+def _freezable(o, d, t_min, t_max, active):
+    """May this query run frozen? Dr.Jit rays (JIT backend, no gradients)
+    outside symbolic code, and the other arguments Python scalars or Dr.Jit
+    arrays."""
+    import drjit as dr
+    if not dr.is_jit_v(o) or dr.grad_enabled(o, d) or dr.flag(dr.JitFlag.SymbolicScope):
+        return False
+    return all(dr.is_array_v(v) or isinstance(v, (bool, numbers.Real))
+               for v in (t_min, t_max, active))
+
+
+def call_frozen(fn, *args):
+    """fn(*args) for a frozen function, with Python's cyclic garbage
+    collector held off: a collection while it records could free arrays
+    that map host memory, which Dr.Jit 1.5 does not allow then (it aborts
+    the process)."""
+    import gc
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        return fn(*args)
+    finally:
+        if enabled:
+            gc.enable()
 
 
 def _empty_result(Float):
