@@ -409,8 +409,8 @@ class Walker:
         for a in range(3):
             face = Float(dr.select(d[a] > 0, hi_c[a], lo_c[a]))
             t_a = dr.fma(face, self.cell_t[a], self.o_t[a])
-            t_out = dr.minimum(t_out, dr.select((d[a] == 0) | out[a], dr.inf, t_a))
-        return dr.maximum(t_out, t + dr.maximum(self.t_nudge, dr.abs(t) * 2.0**-22))
+            t_out = _min(t_out, dr.select((d[a] == 0) | out[a], dr.inf, t_a))
+        return _max(t_out, t + _max(self.t_nudge, dr.abs(t) * 2.0**-22))
 
     def _dense_step(self, t, i, out, inside):
         """The step through the dense table: one gather. From an empty cell
@@ -469,6 +469,21 @@ class Walker:
                                [((a >> up) + 1) << up for a in i], out)
             t_exit = dr.select(found, dr.maximum(t_exit, t_row), t_exit)
         return found, dr.select(found, t_enter, t_in), t_exit, stuck, slot
+
+
+def _min(a, b):
+    """min(a, b) where a is never NaN: b where it is surely smaller (a NaN b,
+    from a near-zero direction's overflowed quotients, is ignored, as
+    dr.minimum ignores it). One compare and select, one instruction on
+    x86, where dr.minimum's NaN rule takes a few more."""
+    import drjit as dr
+    return dr.select(b < a, b, a)
+
+
+def _max(a, b):
+    """max(a, b) where a is never NaN (see :func:`_min`)."""
+    import drjit as dr
+    return dr.select(b > a, b, a)
 
 
 def slot_at(g: DeviceGrid, p, up: int):
