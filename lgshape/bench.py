@@ -680,7 +680,9 @@ def report(results, command, written) -> str:
              f"(`lgshape.camera`); a time is the median of {meta['repeats']} samples after a "
              f"warm-up (3 where one trace takes over a second), each sample repeating the trace "
              f"for at least {meta['min_sample']} s, with the rays and the acceleration structure "
-             "already built. Accuracy is measured on the same traces, "
+             "already built; lgshape and the marching and sphere-tracing baselines run as "
+             "frozen functions (`dr.freeze`: recorded once, then replayed without tracing "
+             "their Python code again). Accuracy is measured on the same traces, "
              + ("on every pixel." if meta['stride'] == 1 else
                 f"on the pixels whose row and column are multiples of {meta['stride']} "
                 f"({meta['accuracy_rays']} rays)."))
