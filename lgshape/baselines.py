@@ -22,7 +22,7 @@ import math
 from .arraymath import DrJitMath
 from .expr import evaluate
 from .grid import clip_to_box
-from .trace import RayResult, _rays, call_frozen
+from .trace import FREEZE_LIMIT, RayResult, _rays, call_frozen
 
 
 def _setup(surface, o, d, t_min, t_max):
@@ -84,7 +84,7 @@ def frozen(method, surface, **settings):
 
     def run(o, d, t_max, n):
         return method(surface, o, d, t_max=t_max, **settings)
-    fn = dr.freeze(run, warn_after=2**30)
+    fn = dr.freeze(run, limit=FREEZE_LIMIT, warn_after=2**30)
 
     def call(o, d, t_max=math.inf):
         return call_frozen(fn, o, d, t_max, max(dr.width(o), dr.width(d)))
