@@ -82,7 +82,7 @@ def frozen(method, surface, **settings):
     kernels. o, d: Dr.Jit arrays; t_max: a Dr.Jit array or a scalar."""
     import drjit as dr
 
-    def run(o, d, t_max, n):
+    def run(o, d, t_max, n):     # n, the ray count, keys the recordings
         return method(surface, o, d, t_max=t_max, **settings)
     fn = dr.freeze(run, limit=FREEZE_LIMIT, warn_after=2**30)
 
