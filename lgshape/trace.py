@@ -638,6 +638,7 @@ class _Rays:
     cell_len: object     # Float: the smallest cell's edge, in s
     r_min: object        # Float: minimum half width of a search interval
     tol: object          # Float64: refinement tolerance in s
+    entering: object     # Bool: the ray enters the box from outside (the walk's tables)
 
 
 class _Evaluator:
@@ -958,6 +959,7 @@ def _prepare_rays(K, o, d, t_min, t_max, active, n):
     t_start, t_end = gridmod.clip_to_box(o64, d64, K.lo, K.hi, Float64(t_min), Float64(t_max))
     active = (Bool(active) | dr.zeros(Bool, n)) & ok_dir & (t_start <= t_end) \
         & dr.isfinite(t_start) & dr.isfinite(t_end)
+    entering = active & (t_start > Float64(t_min))
     t_start = dr.select(active, t_start, 0.0)
     e64 = [dr.select(active, o64[i] - K.centre[i] + t_start * d64[i], 0.0) for i in range(3)]
     d32 = [Float(dr.select(active, d[i], 0.0)) for i in range(3)]
@@ -971,7 +973,8 @@ def _prepare_rays(K, o, d, t_min, t_max, active, n):
         margin=1e-3 * cell / dlen,
         cell_len=cell / dlen,
         r_min=1e-6 * K.diag / dlen,
-        tol=Float64(1e-6 * K.diag / dlen))
+        tol=Float64(1e-6 * K.diag / dlen),
+        entering=entering)
     return active, t_start, rays
 
 
@@ -1049,7 +1052,8 @@ def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
     decision. Ends with a hit, a bracket to refine, no root or the cap."""
     import drjit as dr
     walker = gridmod.Walker(ev.K.grid, ev.rays.g_org, ev.rays.d32, ev.rays.span,
-                             rows_up=ev.K.tables.up if ev.tabled else None)
+                             rows_up=ev.K.tables.up if ev.tabled else None,
+                             entering=ev.rays.entering)
 
     def body(*state):
         lane = _Lane(*state)

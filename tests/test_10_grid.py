@@ -111,13 +111,49 @@ def test06_dense_table_rings(name, depth, rng):
     assert (k >= 2).any()                       # the rings skip empty space
 
 
-@pytest.mark.parametrize("dense", [True, False])
-def test07_walk_visits_every_cell_a_line_crosses(dense, rng, monkeypatch):
-    """The walk (through the dense table, or the brick map used above
-    DENSE_MAX_DEPTH) returns, in order, every occupied cell a ray crosses.
-    Oracle: the cells under 8000 points per ray spaced along it (float64):
-    every point in an occupied cell lies in a returned segment, and the
-    segments are disjoint, in order, and one cell long at most."""
+@pytest.mark.parametrize("name,depth", [("torus", 5), ("tangle", 6), ("chmutov6", 5)])
+def test06b_octant_tables(name, depth, rng):
+    """The eight octant tables (for the rays that enter the grid from
+    outside): per octant of directions s, 0 for the occupied cells, else
+    1 + k where the box of cells i .. i + k s is empty, k at most
+    MAX_RINGS. Oracle: brute force over all occupied cells: the chessboard
+    distance to the nearest occupied cell in that octant is exactly k + 1
+    (capped). The cube table is their least value (scipy's transform is
+    the other oracle), and the walk's array holds the nine tables in
+    order."""
+    spec = LIBRARY[name]()
+    g = G.build(spec.expr, *spec.bbox, depth=depth)
+    R = g.resolution
+    octants = G.octant_rings(g)
+    assert octants.shape == (8, R, R, R)
+    assert np.array_equal(G.dense_rings(g, octants), G.dense_rings(g))
+    c = g.cells.astype(int)
+    for o in range(8):
+        s = np.array([-1 if o >> a & 1 else 1 for a in range(3)])
+        pick = rng.integers(0, R, (300, 3))                    # (i, j, k)
+        ahead = (c[None, :, :] - pick[:, None, :]) * s         # per axis, >= 0 ahead
+        dist = np.where((ahead >= 0).all(-1), ahead.max(-1), 10**6).min(1)
+        assert np.array_equal(octants[o][pick[:, 2], pick[:, 1], pick[:, 0]],
+                              np.minimum(dist, G.MAX_RINGS + 1))
+    assert (octants.max(0) > G.dense_rings(g)).any()      # longer steps than the cube's
+    table = G.walk_table(g)
+    words = R ** 3 // 8
+    assert len(table) == 9 * words
+    ijk = rng.integers(0, R, (500, 3))
+    cidx = G.dense_index([ijk[:, 0], ijk[:, 1], ijk[:, 2]], R)
+    for part, rings in enumerate([G.dense_rings(g)] + list(octants)):
+        w = table[part * words + (cidx >> 3)]
+        assert np.array_equal((w >> ((cidx & 7) * 4)) & 15, rings[ijk[:, 2], ijk[:, 1], ijk[:, 0]])
+
+
+@pytest.mark.parametrize("dense,octants", [(True, False), (True, True), (False, False)])
+def test07_walk_visits_every_cell_a_line_crosses(dense, octants, rng, monkeypatch):
+    """The walk (through the dense table, its octant tables, or the brick
+    map used above DENSE_MAX_DEPTH) returns, in order, every occupied cell
+    a ray crosses. Oracle: the cells under 8000 points per ray spaced along
+    it (float64): every point in an occupied cell lies in a returned
+    segment, and the segments are disjoint, in order, and one cell long at
+    most. A few rays run along an axis (direction 0 on the others)."""
     import drjit as dr
     from drjit.llvm.ad import Float
     spec = LIBRARY["torus"]()
@@ -130,13 +166,17 @@ def test07_walk_visits_every_cell_a_line_crosses(dense, rng, monkeypatch):
     n = 32
     o = lo + (hi - lo) * rng.uniform(0, 1, (n, 3))
     d = rng.normal(size=(n, 3))
+    d[:3] = np.eye(3) * np.sign(d[:3])                  # along an axis, either way
+    d[3, 0] = 0.0                                       # flat on one axis
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     # from each origin to the box's exit
     with np.errstate(divide="ignore"):
         t_exit = np.min(np.maximum((lo - o) / d, (hi - o) / d), axis=1)
     occupied = {tuple(v) for v in g.cells.tolist()}
     W = G.Walker(dev, [Float(o[:, a] - lo[a]) for a in range(3)],
-                 [Float(d[:, a]) for a in range(3)], Float(t_exit))
+                 [Float(d[:, a]) for a in range(3)], Float(t_exit),
+                 entering=dr.full(dr.mask_t(Float), True, n) if octants else None)
+    assert (W.base is not None) == octants
     t = dr.zeros(Float, n)
     active = dr.full(dr.mask_t(Float), True, n)
     segments = [[] for _ in range(n)]
