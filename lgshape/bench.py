@@ -691,7 +691,8 @@ def report(results, command, written) -> str:
              "error in box diagonals over the pixels both hit; normal error is the angle between "
              "normal lines (orientation ignored), mean over those pixels.")
     L.append("- Memory: the acceleration structure only: lgshape's brick map and, up to depth "
-             "8, its walk's dense table (four bits a cell: 1 MB at depth 7); sdfgrid's samples "
+             "8, its walk's dense table (four bits a cell: 1 MB at depth 7), with, up to depth "
+             "7, eight octant tables of the same size; sdfgrid's samples "
              "(float32); the mesh's vertex, normal and index buffers (Embree's BVH and "
              "sdfgrid's per-voxel boxes, internal to Mitsuba, not included). Sphere tracing "
              "and marching keep none.\n")

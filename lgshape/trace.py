@@ -81,7 +81,9 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from . import bounds, grid as gridmod
-from .expr.quadratic import evaluate_quadratic, quad_clip, quad_ends, quad_env, quad_range
+from .expr import raypoly
+from .expr.quadratic import (Segment, evaluate_quadratic, quad_clip, quad_ends, quad_env,
+                             quad_range)
 from .arraymath import NUMPY, DrJitMath
 from .expr import (Expr, evaluate, evaluate_with_error, gradient, hessian, parse,
                    ray_derivatives)
@@ -269,12 +271,18 @@ class Surface:
             # f of degree <= 2: its quadratic form along a ray is exact (to
             # rounding), and the search starts from the first root it allows
             self.quadric = f.degree() <= 2
+            #: A polynomial of degree 3 to raypoly.MAX_DEGREE: the interval
+            #: search works on each ray's polynomial in its parameter
+            #: (:mod:`lgshape.expr.raypoly`); False evaluates f's
+            #: expression in each test instead.
+            self.ray_polynomial = search == "interval" and not self.quadric \
+                and raypoly.ray_degree(self.local_expr) < math.inf
             self.g_expr, self.h_expr = ray_derivatives(self.local_expr)
             self.grid = gridmod.build(f, lo, hi, self.depth,
                                       mode="global" if L is not None else "local", L=L)
             self.cell_rows = None
         else:
-            self.quadric = False
+            self.quadric = self.ray_polynomial = False
             self.cell_rows = tablemod.build(self.tables, lo, hi, self.depth)
             self.grid = gridmod.brick_map(lo, hi, self.depth, self.cell_rows.cells,
                                           self.cell_rows.tested)
@@ -345,9 +353,11 @@ class Surface:
     def memory_bytes(self) -> int:
         """Size of the pruning structure: the brick map, and the walk's
         dense table up to :data:`lgshape.grid.DENSE_MAX_DEPTH` (four bits a
-        fine cell)."""
-        dense = self.grid.resolution ** 3 // 2 if self.depth <= gridmod.DENSE_MAX_DEPTH else 0
-        return self.grid.nbytes + dense
+        fine cell), with its eight octant tables up to
+        :data:`lgshape.grid.OCTANT_MAX_DEPTH`."""
+        tables = (9 if self.depth <= gridmod.OCTANT_MAX_DEPTH else 1) \
+            if self.depth <= gridmod.DENSE_MAX_DEPTH else 0
+        return self.grid.nbytes + tables * self.grid.resolution ** 3 // 2
 
     def global_G(self) -> float:
         """G for unit directions: the hand-given one, else the Hessian norm over the box."""
@@ -443,15 +453,16 @@ class Surface:
         """The search as a frozen function, one per query kind. Its inputs:
         the kernel data (so that the grid, the tables and the opaque
         constants are read on every launch), the rays, and the ray count
-        (recorded kernels are sized by it)."""
-        fn = self._frozen.get(any_hit)
+        (recorded kernels are sized by it); one per setting of
+        ``ray_polynomial`` too (the recording holds the path it took)."""
+        key = (any_hit, self.ray_polynomial)
+        fn = self._frozen.get(key)
         if fn is None:
             import drjit as dr
 
             def search(K, o, d, t_min, t_max, active, n):
                 return _search(self, o, d, t_min, t_max, active, any_hit)
-            fn = self._frozen[any_hit] = dr.freeze(search, limit=FREEZE_LIMIT,
-                                                   warn_after=2**30)
+            fn = self._frozen[key] = dr.freeze(search, limit=FREEZE_LIMIT, warn_after=2**30)
         return fn
 
 
@@ -659,6 +670,9 @@ class _Evaluator:
             self.G_glob = K.m64.Float(dr.opaque(Float, surf.global_G())
                                       * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
         self.dirs = {"dx": rays.d64[0], "dy": rays.d64[1], "dz": rays.d64[2]}
+        # F's coefficients along each ray (a polynomial f), once per ray
+        self.poly = raypoly.ray_polynomial(self.f, rays.e64, rays.d64, K.m64) \
+            if self.mode == "interval" and not self.tabled and surf.ray_polynomial else None
 
     def _point_env(self, s):
         """The ray's point at s (float64) and the rounding of its coordinates."""
@@ -680,6 +694,8 @@ class _Evaluator:
         (point, bounds, c2): c2, the curvature of F's quadratic form at the
         middle (interval mode; 0 elsewhere), for the start of Newton."""
         K, R = self.K, self.rays
+        if self.poly is not None:
+            return self._poly_point_and_bounds(s, lo, hi, need)
         if self.tabled:
             env, err = self._point_env(s)
             F, eF, g, B = K.tables.point_segment(env, err, rng, K.m64, R.e32, R.d32, lo, hi, K.m)
@@ -695,6 +711,40 @@ class _Evaluator:
             return (F, eF, self.dr.select(flat, g, K.m64.Float(B[4])), None), B[:4] + B[6:], \
                 self.dr.select(flat, 0.0, K.m64.Float(B[5]))
         return self.point(s, rng), self._bounds(lo, hi, need), 0.0
+
+    def _poly_point_and_bounds(self, s, lo, hi, need):
+        """:meth:`point_and_bounds` from the ray's polynomial: its
+        coefficients about s (the interval's middle where ``need``) give
+        F(s) with its error bound and F's slope and curvature there, and
+        F's and g's quadratic forms over the interval's half width r (as
+        :meth:`test` rounds it), whose remainders are the higher terms."""
+        dr, m64 = self.dr, self.K.m64
+        Float64 = m64.Float
+        c, w = self.poly
+        t = Float64(s)
+        cs, W = raypoly.shift(m64, c, w, t)
+        r = Float64(self.K.m.Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22))
+        seg = Segment(m64, r)
+        at = dr.abs(t)
+        Qf, Qg = raypoly.forms(seg, cs, W, at)
+        Fq, gq = quad_range(seg, Qf), quad_range(seg, Qg)
+        inf = Float64(dr.inf)
+        B = tuple(dr.select(need, v, dflt) for v, dflt in
+                  zip((gq.lo, gq.hi, Fq.lo, Fq.hi) + quad_ends(seg, Qf),
+                      (0.0, 0.0, -inf, inf, -inf, inf, -inf, inf)))
+        # F(s): the coefficient's bound is the whole ray's rounding; where
+        # it leaves the sign unknown (near a root), f's own float64 point
+        # value, whose bound is the rounding at that point, decides (both
+        # enclose the same exact value; a branch a packet takes only where
+        # one of its lanes needs it)
+        F, eF = cs[0], raypoly.bound(m64, W, at)
+
+        def at_point(s, F, eF):
+            env, err = self._point_env(s)
+            return evaluate_with_error(self.f, env, err, m64)
+        F, eF = dr.if_stmt(args=(t, F, eF), cond=~(dr.abs(F) > eF), true_fn=at_point,
+                           false_fn=lambda s, F, eF: (F, eF), label="lgshape_point")
+        return (F, eF, cs[1], None), B, cs[2]
 
     def point(self, s, rng, g_where=None):
         """F and g at s in float64 with error bounds of F (and of g where the

@@ -112,12 +112,29 @@ def test01_matches_polynomial_roots(name, rng):
     degree, F = FORMULAS[name]
     spec = lgshape.surfaces.LIBRARY[name]()
     lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
-    counts = _check(lgshape.Surface(spec), F, degree, *_rays(rng, F, degree, lo, hi),
+    surf = lgshape.Surface(spec)
+    assert surf.ray_polynomial            # (degree 3-6: each ray's polynomial)
+    counts = _check(surf, F, degree, *_rays(rng, F, degree, lo, hi),
                     groups=np.repeat(["outside", "inside", "grazing"], [N_OUT, N_IN, N_GRAZE]))
     # The grazing rays exercise silhouettes: many simple first roots there;
     # and many rays have no root (misses are checked too).
     assert counts["by_group"]["grazing"]["simple"] > 5_000, counts
     assert counts["none"] > 10_000, counts
+
+
+@pytest.mark.parametrize("name", ["barth_sextic", "chmutov6"])
+def test01c_expression_path(name, rng):
+    """The same polynomials with ``ray_polynomial`` off: each test evaluates
+    the expression's quadratic forms (the path of every f that is not a
+    polynomial of degree 3-8). 100k rays, test01's oracle and rules."""
+    degree, F = FORMULAS[name]
+    spec = lgshape.surfaces.LIBRARY[name]()
+    lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
+    surf = lgshape.Surface(spec)
+    surf.ray_polynomial = False
+    counts = _check(surf, F, degree, *_rays(rng, F, degree, lo, hi),
+                    groups=np.repeat(["outside", "inside", "grazing"], [N_OUT, N_IN, N_GRAZE]))
+    assert counts["by_group"]["grazing"]["simple"] > 5_000, counts
 
 
 FORMULAS["sphere"] = (2, lambda X, Y, Z: X**2 + Y**2 + Z**2 - 1)

@@ -193,7 +193,7 @@ def test08_frozen_queries_match_traced_ones(form, rng):
             assert hit[ok].all() and not hit[~ok].any()
             assert np.allclose(t64[ok], first[ok], atol=1e-4 * surf.diagonal)
         surf.freeze = True
-        counts.append([surf._frozen[k].n_recordings for k in (False, True)])
+        counts.append([surf._frozen[k, surf.ray_polynomial].n_recordings for k in (False, True)])
     # a layout may be recorded again on its first calls (its first recording
     # made the opaque constants of f, inputs from then on; Dr.Jit's own
     # checks, whose reasons it does not report, rarely record once more),

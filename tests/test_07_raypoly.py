@@ -1,0 +1,150 @@
+"""A polynomial f along a ray as a polynomial in the ray parameter
+(:mod:`lgshape.expr.raypoly`): coefficients, their error bounds, the shift
+to another point and the quadratic forms the search's test takes.
+
+Oracle: exact rational arithmetic (Python fractions): the expression is
+expanded along the ray from the exact binary values of the ray's float64
+origin and direction and of its constants, so every float64 result and
+every bound is checked against the exact polynomial."""
+import math
+from fractions import Fraction as Fr
+
+import numpy as np
+import pytest
+
+import lgshape
+from lgshape.arraymath import NUMPY
+from lgshape.expr import raypoly
+from lgshape.expr.node import topological
+from lgshape.expr.quadratic import Segment, quad_range
+from lgshape.surfaces import LIBRARY
+
+POLYNOMIALS = ["torus", "tangle", "barth_sextic", "kummer", "chmutov6", "clebsch"]
+WRITTEN = ["x^3 - y*z/3 + 0.1*x^2*y - 1/7", "(x - 0.3)^2 * (y + 1/3)^3 - z^5 / 11 + sqrt(2)*x*y*z",
+           "-(x*y - z)^4 + 2.5"]
+
+
+def _exact(f, e, d):
+    """F(s) = f(e + s d) exactly: coefficients (fractions), from the exact
+    values of e, d and of the constants (float64)."""
+    val = {}
+
+    def mul(a, b):
+        c = [Fr(0)] * (len(a) + len(b) - 1)
+        for i, x in enumerate(a):
+            for j, y in enumerate(b):
+                c[i + j] += x * y
+        return c
+    for n in topological([f]):
+        args = [val[id(a)] for a in n.args]
+        if n.op == "var":
+            a = "xyz".index(n.param)
+            val[id(n)] = [Fr(float(e[a])), Fr(float(d[a]))]
+        elif n.op == "const":
+            val[id(n)] = [Fr(n.param)]
+        elif n.op in ("add", "sub"):
+            k = 1 if n.op == "add" else -1
+            m = max(len(args[0]), len(args[1]))
+            a, b = (v + [Fr(0)] * (m - len(v)) for v in args)
+            val[id(n)] = [x + k * y for x, y in zip(a, b)]
+        elif n.op == "neg":
+            val[id(n)] = [-x for x in args[0]]
+        elif n.op == "mul":
+            val[id(n)] = mul(*args)
+        elif n.op == "pow":
+            r = [Fr(1)]
+            for _ in range(int(n.param)):
+                r = mul(r, args[0])
+            val[id(n)] = r
+        elif n.op == "div":
+            assert len(args[1]) == 1
+            val[id(n)] = [x / args[1][0] for x in args[0]]
+        elif n.op == "sqrt":            # a constant: exact enough as a fraction?
+            raise LookupError("sqrt")   # (handled by the caller)
+        else:
+            raise ValueError(n.op)
+    return val[id(f)]
+
+
+def _expr(name):
+    return LIBRARY[name]().expr if name in LIBRARY else lgshape.parse(name)
+
+
+def _shifted(ex, t):
+    n = len(ex) - 1
+    return [sum(math.comb(k, j) * ex[k] * t ** (k - j) for k in range(j, n + 1))
+            for j in range(n + 1)]
+
+
+@pytest.mark.parametrize("name", POLYNOMIALS + WRITTEN[:1] + WRITTEN[2:])
+def test01_coefficients_and_shift_within_their_bounds(name, rng):
+    """For random rays: |c_k - exact| <= w_k for every coefficient; after a
+    shift to a random t, F(t) within W(|t|), and the summed errors of the
+    shifted coefficients, weighted by x^k, within W(|t| + x)."""
+    f = _expr(name)
+    worst = 0.0
+    for _ in range(25):
+        e, d, t, x = rng.normal(size=3) * 2, rng.normal(size=3), rng.normal(), abs(rng.normal())
+        c, w = raypoly.ray_polynomial(f, list(e), list(d), NUMPY)
+        ex = _exact(f, e, d)
+        assert len(c) == len(ex) == f.degree() + 1
+        for ck, wk, xk in zip(c, w, ex):
+            err = abs(Fr(float(ck)) - xk)
+            assert err <= Fr(float(wk)), (name, float(err), float(wk))
+            worst = max(worst, float(err) / float(wk)) if wk > 0 else worst
+        cs, W = raypoly.shift(NUMPY, c, w, np.float64(t))
+        exs = _shifted(ex, Fr(t))
+        assert abs(Fr(float(cs[0])) - exs[0]) <= Fr(float(raypoly.bound(NUMPY, W, abs(t))))
+        total = sum(abs(Fr(float(a)) - b) * Fr(x) ** j for j, (a, b) in enumerate(zip(cs, exs)))
+        assert total <= Fr(float(raypoly.bound(NUMPY, W, np.float64(abs(t) + x))))
+    assert worst > 1e-3                 # the bounds are not vacuous: errors are met
+
+
+def test02_constant_subexpressions():
+    """sqrt(2) in a polynomial is a constant with its own error bound: the
+    coefficients enclose the polynomial for every value within it (oracle:
+    exact expansion with sqrt(2) rounded either way by one ulp)."""
+    f = _expr(WRITTEN[1])
+    e, d = [0.3, -0.7, 1.1], [0.6, 0.2, -0.9]
+    c, w = raypoly.ray_polynomial(f, e, d, NUMPY)
+    root2 = math.sqrt(2)
+    for r2 in (np.nextafter(root2, 0), np.nextafter(root2, 3)):
+        g = lgshape.parse(WRITTEN[1].replace("sqrt(2)", repr(float(r2))))
+        ex = _exact(g, e, d)
+        for ck, wk, xk in zip(c, w, ex):
+            assert abs(Fr(float(ck)) - xk) <= Fr(float(wk))
+
+
+@pytest.mark.parametrize("name", ["barth_sextic", "chmutov6", "clebsch"])
+def test03_forms_enclose_F_and_its_slope(name, rng):
+    """The quadratic forms from a shift (:func:`raypoly.forms`) over
+    |s| <= r: their ranges hold F(t + s) and F'(t + s) exactly at points
+    spread over the segment (oracle: exact evaluation of the exact
+    polynomial and its derivative)."""
+    f = _expr(name)
+    for _ in range(20):
+        e, d = rng.normal(size=3), rng.normal(size=3)
+        t, r = rng.normal(), 10.0 ** rng.uniform(-4, 0)
+        c, w = raypoly.ray_polynomial(f, list(e), list(d), NUMPY)
+        cs, W = raypoly.shift(NUMPY, c, w, np.float64(t))
+        seg = Segment(NUMPY, np.float64(r))
+        Qf, Qg = raypoly.forms(seg, cs, W, np.float64(abs(t)))
+        Fi, gi = quad_range(seg, Qf), quad_range(seg, Qg)
+        exs = _shifted(_exact(f, e, d), Fr(t))
+        for s in np.linspace(-r, r, 9):
+            S = Fr(float(s))
+            Fv = sum(a * S ** k for k, a in enumerate(exs))
+            gv = sum(k * a * S ** (k - 1) for k, a in enumerate(exs) if k)
+            assert Fr(float(Fi.lo)) <= Fv <= Fr(float(Fi.hi))
+            assert Fr(float(gi.lo)) <= gv <= Fr(float(gi.hi))
+
+
+def test04_only_polynomials():
+    """The search takes a polynomial of degree 3 to MAX_DEGREE this way; a
+    quadric, a higher degree, or sqrt, sin, min of x, y, z, are evaluated
+    as expressions."""
+    assert lgshape.Surface(LIBRARY["torus"]()).ray_polynomial
+    for f in ("x^2 + y^2 + z^2 - 1", "x^9 + y - z", "sqrt(x^2 + y^2) - z^3", "min(x^3, y) - z"):
+        assert not lgshape.Surface(lgshape.parse(f), ((-1,) * 3, (1,) * 3)).ray_polynomial, f
+    with pytest.raises(ValueError, match="polynomial"):
+        raypoly.ray_polynomial(lgshape.parse("sin(x) + y^3"), [0.0] * 3, [1.0] * 3, NUMPY)
