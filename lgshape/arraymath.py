@@ -99,13 +99,15 @@ def math_for(value):
     return NUMPY
 
 
-def powi(v, n: int):
-    """v ** n for an integer n >= 1 by binary exponentiation (any array type)."""
+def powi(v, n: int, mul=None):
+    """v ** n for an integer n >= 1 by binary exponentiation (any array
+    type; ``mul``: the product to use, default ``*``)."""
+    mul = mul or (lambda a, b: a * b)
     result, base = None, v
     while n:
         if n & 1:
-            result = base if result is None else result * base
+            result = base if result is None else mul(result, base)
         n >>= 1
         if n:
-            base = base * base
+            base = mul(base, base)
     return result

@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 
 from .. import interval as iv
+from ..arraymath import powi
 from .evaluate import _lookup, constant
 from .node import Expr, topological
 from .ops import OPS
@@ -265,14 +266,7 @@ def _mul(seg, a, b):
 
 
 def _pow(seg, a, n: int):
-    result, base = None, a
-    while n:
-        if n & 1:
-            result = base if result is None else _mul(seg, result, base)
-        n >>= 1
-        if n:
-            base = _mul(seg, base, base)
-    return result
+    return powi(a, n, lambda p, q: _mul(seg, p, q))
 
 
 def _neg(a):

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 
+from ..arraymath import powi
 from .evaluate import evaluate_with_error
 from .node import Expr, topological
 
@@ -122,14 +123,7 @@ def _pow(m, A, n: int):
     if n == 0:
         z = 0.0 * A[0][0]
         return [z + 1.0], [z]
-    result, base = None, A
-    while n:
-        if n & 1:
-            result = base if result is None else _mul(m, result, base)
-        n >>= 1
-        if n:
-            base = _mul(m, base, base)
-    return result
+    return powi(A, n, lambda p, q: _mul(m, p, q))
 
 
 def shift(m, c, w, t):
