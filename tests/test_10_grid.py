@@ -218,3 +218,45 @@ def test08_default_depth_by_expression_size():
     big = lgshape.Surface(f"0.5 - ({terms})", ((-1,) * 3, (1,) * 3), tables=False)
     assert big.expr.size() > T.DEEP_MAX_NODES and big.depth == 6
     assert lgshape.Surface(LIBRARY["torus"](), depth=5).depth == 5
+
+
+def test09_flat_boxes_get_cubic_cells(rng):
+    """A plain expression's grid box: the box itself where it is near
+    cubic, else the cube about it (same centre), so the cells are cubes;
+    the search still keeps to the box. Oracle: float64 polynomial roots of
+    a torus in its flat box (3.08 x 3.08 x 0.96) and in a box cut flat
+    through its tube (z in [0, 0.2]: the cells outside the box hold surface
+    that no ray may report), 4000 rays from outside aimed into the box."""
+    import lgshape
+    from lgshape.reference import clip_to_box, polynomial_roots
+    from lgshape.trace import _grid_box
+    lo, hi = np.array([-1.0, -1.5, 0.0]), np.array([1.0, 1.5, 1.5])
+    assert [v.tolist() for v in _grid_box(lo, hi)] == [lo.tolist(), hi.tolist()]
+    glo, ghi = _grid_box(np.array([-1.5, -1.5, -0.2]), np.array([1.5, 1.5, 0.4]))
+    assert np.allclose(glo, [-1.5, -1.5, -1.4]) and np.allclose(ghi, [1.5, 1.5, 1.6])
+
+    def F(X, Y, Z):
+        return (X**2 + Y**2 + Z**2 + 1 - 0.16)**2 - 4 * (X**2 + Y**2)
+    spec = LIBRARY["torus"]()
+    for box in (spec.bbox, ((-1.5, -1.5, 0.0), (1.5, 1.5, 0.2))):
+        surf = lgshape.Surface(spec.expr, box)
+        lo, hi = (np.asarray(v, float) for v in box)
+        assert np.allclose(np.ptp(surf.grid.hi - surf.grid.lo), 0)        # a cube
+        assert np.all(surf.grid.lo <= lo) and np.all(surf.grid.hi >= hi)
+        c = 0.5 * (lo + hi)
+        o = c + 3.0 * rng.normal(size=(4000, 3))
+        d = lo + (hi - lo) * rng.uniform(0, 1, (4000, 3)) - o
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o, d = o.astype(np.float32), d.astype(np.float32)
+        res = surf.trace(o, d)
+        t0, t1 = clip_to_box(o.astype(float), d.astype(float), lo, hi)
+        roots = polynomial_roots(F, 4, o.astype(float), d.astype(float), t0, t1)
+        real = np.where((np.abs(roots.imag) < 1e-9) & (roots.real >= t0[:, None])
+                        & (roots.real <= t1[:, None]), roots.real, np.inf).min(1)
+        hit, t = np.asarray(res.hit), np.asarray(res.t64)
+        tol = 1e-5 * surf.diagonal
+        clear = np.isfinite(real) | (t1 < t0)                 # a root, or no box
+        assert np.all(hit[np.isfinite(real)]), "a root in the box was missed"
+        assert np.all(np.abs(t - real)[np.isfinite(real)] < tol)
+        assert not hit[~np.isfinite(real) & clear].any()
+        assert np.isfinite(real).sum() > 500

@@ -136,13 +136,16 @@ def quad_range(seg: Segment, q: Quad) -> iv.Interval:
         return _range(seg, q)
 
 
-def quad_ends(seg: Segment, q: Quad):
-    """Bounds of q at s = -r and s = +r: (lo_a, hi_a, lo_b, hi_b), each the
-    quadratic's value there widened by R and the rounding; NaN or overflow
-    gives infinite bounds."""
+def quad_ends(seg: Segment, q: Quad, at=None):
+    """Bounds of q at s = -r and s = +r (or at s = -at and +at, 0 <= at <=
+    r): (lo_a, hi_a, lo_b, hi_b), each the quadratic's value there widened
+    by R and the rounding; NaN or overflow gives infinite bounds."""
     m = seg.m
     with m.errstate():
         pa, pb, w = _ends(seg, q)
+        if at is not None:
+            pa = q.c0 - q.c1 * at + q.c2 * (at * at)
+            pb = q.c0 + q.c1 * at + q.c2 * (at * at)
         return (_finite_lo(m, pa - w), _finite_hi(m, pa + w),
                 _finite_lo(m, pb - w), _finite_hi(m, pb + w))
 
