@@ -257,6 +257,7 @@ def test09_flat_boxes_get_cubic_cells(rng):
         tol = 1e-5 * surf.diagonal
         clear = np.isfinite(real) | (t1 < t0)                 # a root, or no box
         assert np.all(hit[np.isfinite(real)]), "a root in the box was missed"
-        assert np.all(np.abs(t - real)[np.isfinite(real)] < tol)
+        root = np.isfinite(real)
+        assert np.all(np.abs(t[root] - real[root]) < tol)
         assert not hit[~np.isfinite(real) & clear].any()
         assert np.isfinite(real).sum() > 500
