@@ -749,7 +749,7 @@ class _Evaluator:
         c, w = self.poly
         t = Float64(s)
         cs, W = raypoly.shift(m64, c, w, t)
-        r = Float64(self.K.m.Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22))
+        r = Float64(_half_width(lo, hi))
         seg = Segment(m64, r)
         at = dr.abs(t)
         Qf, Qg = raypoly.forms(seg, cs, W, at)
@@ -872,7 +872,7 @@ class _Evaluator:
         # [tm - r, tm + r] must cover [lo, hi]: the midpoint in float64
         # (exact), the half width rounded outward.
         tm = 0.5 * (Float64(lo) + Float64(hi))
-        r = self.K.m.Float(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22)
+        r = _half_width(lo, hi)
         re = _end_offset(lo, hi)
         F, eF, g, eg = at
         local = active & (self.mode != "global")
@@ -978,6 +978,15 @@ class _Test:
     defined: object      # Bool: F(tm) defined
     bounded: object      # Bool: F bounded over the interval
     evals: object        # point plus interval evaluations made
+
+
+def _half_width(lo, hi):
+    """The half width r of [lo, hi] (float32 ends) that the test's
+    enclosures cover: [tm - r, tm + r] holds [lo, hi] (float32, rounded
+    outward), tm = (lo + hi) / 2 in float64."""
+    import drjit as dr
+    Float64 = dr.float64_array_t(type(lo))
+    return type(lo)(0.5 * (Float64(hi) - Float64(lo))) * (1 + 2.0**-22)
 
 
 def _end_offset(lo, hi):
