@@ -323,3 +323,34 @@ def test08_clip_finds_quadric_roots(rng):
         gap = (root - first)[has] / (b - a)[has]
         assert np.median(gap) < 1e-2 and np.mean(gap < 0.05) > 0.9, np.percentile(gap, [50, 90])
         assert free[~np.isfinite(s).any(1) & (disc < 0)].mean() > 0.9
+
+
+def test09_clamped_kernel_across_its_clamp(rng):
+    """A Wyvill blob's kernel k(min(u, 1)) (u = |p|^2) and g on short
+    segments through the clamp sphere u = 1, where min's arguments cross.
+    Oracle: float64 samples of f and g (65 a segment, ends included) inside
+    the forms' ranges. Tightness: k has zero slope at the clamp, so g is
+    small there; the derivative keeps k'(m) as one factor of the clamp's
+    step (diff._factored), and min's form is the chord (quadratic._chord),
+    so g's range shrinks with the segment (about 2 L wide; term by term,
+    the step's [0, 1] times each term gave about 7.7e3 L at L = 1e-3) and
+    f's is first order (about 1.4 L; the interval rule's constant form gave
+    about 3 L)."""
+    u = "(x^2 + y^2 + z^2)"
+    f = parse(f"0.5 - (1 - 4/9*min({u}, 1)^3 + 17/9*min({u}, 1)^2 - 22/9*min({u}, 1))")
+    g, _ = ray_derivatives(f)
+    n, L = 4000, 1e-3
+    p = rng.normal(size=(n, 3))
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    a = -L * rng.uniform(0.1, 0.9, n)
+    b = a + L
+    t = a[:, None] + L * np.linspace(0, 1, 65)[None]
+    widths = {}
+    for name, e, (lo, hi) in zip("fg", (f, g), _ranges([f, g], p, d, a, b, "numpy64")):
+        v = _values(e, p, d, t)
+        assert ((lo[:, None] <= v) & (v <= hi[:, None])).all(), name
+        widths[name] = np.median(hi - lo) / L
+    assert widths["g"] < 10, widths
+    assert widths["f"] < 2, widths

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from .node import ZERO, Expr, const, topological, var
+from .node import ZERO, Expr, add, const, mul, sub, topological, var
 from .ops import OPS
 
 DX, DY, DZ = var("dx"), var("dy"), var("dz")
@@ -50,10 +50,73 @@ def _derivatives(roots, seedings) -> list[tuple[Expr, ...]]:
             da = [d[id(a)] for a in args]
             if op in _ZERO_IN_ZERO_OUT:
                 d[id(n)] = tuple(ZERO if all(t[j] is ZERO for t in da)
-                                 else rule(n, args, [t[j] for t in da]) for j in range(k))
+                                 else _factored(rule(n, args, [t[j] for t in da]))
+                                 for j in range(k))
             else:
-                d[id(n)] = tuple(rule(n, args, [t[j] for t in da]) for j in range(k))
+                d[id(n)] = tuple(_factored(rule(n, args, [t[j] for t in da])) for j in range(k))
     return [d[id(r)] for r in roots]
+
+
+#: How many nodes of a product chain :func:`_product` looks through.
+_FACTOR_SCAN = 32
+
+
+def _product(e: Expr):
+    """e as coef * (f1 * f2 * ...): the constant and the other factors of
+    its chain of products and negations (None past ``_FACTOR_SCAN`` nodes)."""
+    coef, factors, stack = 1.0, [], [e]
+    for _ in range(_FACTOR_SCAN):
+        if not stack:
+            return coef, factors
+        n = stack.pop()
+        if n.op == "mul":
+            stack.extend(n.args)
+        elif n.op == "neg":
+            coef = -coef
+            stack.append(n.args[0])
+        elif n.op == "const":
+            coef *= n.param
+        else:
+            factors.append(n)
+    return None
+
+
+def _factored(e: Expr) -> Expr:
+    """A sum or difference of two products with common factors, as the
+    product of those factors and the sum of the rest: a P(m) dm + b Q(m) dm
+    -> (a P(m) + b Q(m)) dm. The chain rule distributes an argument's
+    derivative over every term of a polynomial in it; kept factored, an
+    enclosure sees that the terms' partials cancel (a blob's kernel has
+    zero slope where it is clamped: bounded term by term, the step of the
+    clamp's derivative multiplies each term's range, not their sum's).
+    Interval arithmetic is subdistributive, so the factored form's
+    enclosures are never wider."""
+    if e.op not in ("add", "sub"):
+        return e
+    pa, pb = _product(e.args[0]), _product(e.args[1])
+    if pa is None or pb is None:
+        return e
+    rest_b = list(pb[1])
+    common, rest_a = [], []
+    for f in pa[1]:
+        for i, g in enumerate(rest_b):
+            if g is f:
+                common.append(f)
+                del rest_b[i]
+                break
+        else:
+            rest_a.append(f)
+    if not common:
+        return e
+    a, b = const(pa[0]), const(pb[0])
+    for f in rest_a:
+        a = mul(a, f)
+    for f in rest_b:
+        b = mul(b, f)
+    out = add(a, b) if e.op == "add" else sub(a, b)
+    for f in common:
+        out = mul(out, f)
+    return out
 
 
 def derivative(f: Expr, seeds: dict[str, Expr]) -> Expr:

@@ -295,6 +295,52 @@ def _via_interval(seg, n: Expr, ranges):
     return from_interval(m, r)
 
 
+def _chord(seg: Segment, op: str, a: Quad, b: Quad | None) -> Quad:
+    """min(a, b), max(a, b) or |a| (b None) where neither side provably
+    wins: with d = a - b over the segment in [dl, dh] (dl <= 0 <= dh),
+    |d| lies between alpha d and the chord alpha d + beta through
+    (dl, |dl|) and (dh, |dh|), so
+
+        min(a, b) = (a + b) / 2 - |d| / 2  in  lam a + mu b - [0, beta / 2]
+
+    (lam = (1 - alpha) / 2, mu = (1 + alpha) / 2; max: the sign of |d|
+    and the two weights swap): a form that keeps the arguments' slopes
+    where the interval rule gives a constant. Sound for the alpha
+    computed: |d| - alpha d >= 0 for |alpha| <= 1, and it is convex in d,
+    so its largest value over [dl, dh] is at an end (beta)."""
+    m = seg.m
+    d = a if b is None else _add(seg, a, b, -1.0)
+    rd = _range(seg, d)
+    dl, dh = m.minimum(rd.lo, 0.0), m.maximum(rd.hi, 0.0)
+    den = dh - dl
+    alpha = m.select(den > 0, (dh + dl) / m.select(den > 0, den, 1.0), 0.0)
+    alpha = m.minimum(m.maximum(alpha, -1.0), 1.0)
+    beta = m.maximum(-dl * (1.0 + alpha), dh * (1.0 - alpha)) * (1.0 + 4.0 * m.u)
+    if b is None:
+        # |a| in alpha a + [0, beta]
+        base = _scale(seg, alpha, a)
+        sign = 1.0
+    else:
+        lam, mu = 0.5 - 0.5 * alpha, 0.5 + 0.5 * alpha    # lam + mu = 1 to rounding
+        wa, wb = (lam, mu) if op == "min" else (mu, lam)
+        base = _add(seg, _scale(seg, wa, a, m.u), _scale(seg, wb, b, m.u))
+        beta = 0.5 * beta
+        sign = -1.0 if op == "min" else 1.0
+    c0 = base.c0 + sign * 0.5 * beta
+    R = base.R + 0.5 * beta * (1.0 + 4.0 * m.u) + seg.slack(m.abs(c0) + beta)
+    bad = ~(m.abs(beta) < math.inf)
+    inf = 0.0 * c0 + math.inf
+    return Quad(c0, base.c1, base.c2, m.select(bad, inf, R))
+
+
+def _narrower(seg: Segment, t: Quad, fallback: Quad) -> Quad:
+    """t unless its spread over the segment is over twice the constant
+    form's (whose spread is its R)."""
+    m = seg.m
+    wide = m.abs(t.c1) * seg.r + m.abs(t.c2) * seg.r2 + t.R
+    return _select(m, wide <= 2.0 * fallback.R, t, fallback)
+
+
 def _smooth(seg: Segment, op: str, a: Quad) -> Quad:
     """sin, cos or exp of a form. With a = c0 + delta(s),
     f(c0 + delta) = f(c0) + f1 delta + f2 delta^2 / 2 + f3 delta^3 / 6
@@ -369,17 +415,17 @@ def _node(seg: Segment, n: Expr, args, exact):
     if op in ("min", "max"):
         a_wins = (ranges[0].hi < ranges[1].lo) if op == "min" else (ranges[0].lo > ranges[1].hi)
         b_wins = (ranges[1].hi < ranges[0].lo) if op == "min" else (ranges[1].lo > ranges[0].hi)
-        return _select(m, a_wins, q[0], _select(m, b_wins, q[1], fallback))
+        mixed = _narrower(seg, _chord(seg, op, q[0], q[1]), fallback)
+        return _select(m, a_wins, q[0], _select(m, b_wins, q[1], mixed))
     if op in ("sin", "cos", "exp"):
         # the second-order rule unless it is over twice as wide as the
         # interval rule (a form composes better: products keep their
         # correlations)
-        t = _smooth(seg, op, q[0])
-        wide = m.abs(t.c1) * seg.r + m.abs(t.c2) * seg.r2 + t.R
-        return _select(m, wide <= 2.0 * fallback.R, t, fallback)
+        return _narrower(seg, _smooth(seg, op, q[0]), fallback)
     if op == "abs":
+        mixed = _narrower(seg, _chord(seg, op, q[0], None), fallback)
         return _select(m, ranges[0].lo >= 0, q[0], _select(m, ranges[0].hi <= 0, _neg(q[0]),
-                                                            fallback))
+                                                            mixed))
     return fallback
 
 
