@@ -81,6 +81,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from . import bounds, grid as gridmod
+from . import interval as iv
 from .expr import raypoly
 from .expr.quadratic import (Segment, evaluate_quadratic, quad_clip, quad_ends, quad_env,
                              quad_range)
@@ -808,8 +809,22 @@ class _Evaluator:
         if self.mode == "interval":
             def true_fn(lo, hi):
                 seg, env = quad_env(m, R.e32, R.d32, lo, hi)
-                Qf, Qg = evaluate_quadratic([self.f, self.ge], env, seg)
-                Fq, gq = quad_range(seg, Qf), quad_range(seg, Qg)
+                memo = {}
+                (Qf,) = evaluate_quadratic([self.f], env, seg, memo)
+                Fq = quad_range(seg, Qf)
+                # g's form (its range) only where F's does not exclude a
+                # root: in a branch a packet takes where a lane needs it,
+                # on the nodes f's form left in the memo
+                needs_g = need & (Fq.lo <= 0) & (Fq.hi >= 0)
+
+                def g_range(lo, hi):
+                    (Qg,) = evaluate_quadratic([self.ge], env, seg, memo)
+                    gq = quad_range(seg, Qg)
+                    return gq.lo, gq.hi
+                gq = iv.Interval(*dr.if_stmt(
+                    args=(lo, hi), cond=needs_g, true_fn=g_range,
+                    false_fn=lambda lo, hi: (Float(-dr.inf), Float(dr.inf)),
+                    label="lgshape_slope_form"))
                 # the ends' values inside [lo, hi]: seg.r reaches past
                 # them, by its rounding up (2^-21) and the rounding of the
                 # middle tm (an ulp of tm, 2^-23 |tm|)

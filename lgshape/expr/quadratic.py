@@ -432,20 +432,26 @@ def _node(seg: Segment, n: Expr, args, exact):
 _POLYNOMIAL = frozenset(("add", "sub", "mul", "neg", "pow"))
 
 
-def evaluate_quadratic(roots, env: dict, seg: Segment):
+def evaluate_quadratic(roots, env: dict, seg: Segment, memo=None):
     """Quadratic forms of ``roots`` (an Expr or a list) over the segment.
 
     ``env`` maps variable names to :class:`Quad` (the coordinates, see
     :func:`coordinate`), :class:`~lgshape.interval.Interval` (parameters
     known to a range) or plain arrays (exact values such as the direction).
-    A node whose arguments are all plain stays plain. Returns Quads."""
+    A node whose arguments are all plain stays plain. Returns Quads.
+    ``memo``: a dict that keeps the nodes' forms for a later call on the
+    same segment (which then computes only the nodes not yet in it)."""
     single = isinstance(roots, Expr)
     roots = [roots] if single else list(roots)
     m = seg.m
-    memo = {}
-    inexact = set()     # nodes whose form went through an interval rule
+    if memo is None:
+        memo = {}
+    # nodes whose form went through an interval rule
+    inexact = memo.setdefault("inexact", set())
     with m.errstate():
         for n in topological(roots):
+            if id(n) in memo:
+                continue
             if n.op in ("const", "named"):
                 memo[id(n)] = constant(n, m)
                 continue
