@@ -36,6 +36,12 @@ class NumpyMath:
     def named(self, name: str, c: float):
         return np.float64(c)
 
+    @staticmethod
+    def sincos32(v):
+        """sin v and cos v computed in float32 (v rounded to float32)."""
+        v32 = np.asarray(v).astype(np.float32)
+        return np.sin(v32).astype(np.float64), np.cos(v32).astype(np.float64)
+
     def errstate(self):
         return np.errstate(all="ignore")
 
@@ -66,6 +72,13 @@ class DrJitMath:
         self.sin, self.cos, self.abs = dr.sin, dr.cos, dr.abs
         self.floor, self.ceil, self.isnan = dr.floor, dr.ceil, dr.isnan
         self.minimum, self.maximum, self.select = dr.minimum, dr.maximum, dr.select
+
+    def sincos32(self, v):
+        """sin v and cos v computed in float32 (v rounded to float32), in
+        v's type."""
+        dr = self.dr
+        s, c = dr.sincos(dr.float32_array_t(type(v))(v))
+        return type(v)(s), type(v)(c)
 
     def const(self, c: float):
         v = self._consts.get(c)

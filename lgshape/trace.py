@@ -82,7 +82,7 @@ import numpy as np
 
 from . import bounds, grid as gridmod
 from . import interval as iv
-from .expr import raypoly
+from .expr import raypoly, raytrig
 from .expr.quadratic import (Segment, evaluate_quadratic, quad_clip, quad_ends, quad_env,
                              quad_range)
 from .arraymath import NUMPY, DrJitMath
@@ -300,8 +300,15 @@ class Surface:
             #: search works on each ray's polynomial in its parameter
             #: (:mod:`lgshape.expr.raypoly`); False evaluates f's
             #: expression in each test instead.
+            #: A sum of products of sines and cosines of affine functions
+            #: (:mod:`lgshape.expr.raytrig`: the gyroid, Schwarz's surfaces)
+            #: is taken the same way, as each ray's sum of sinusoids.
+            self.ray_trig = None if self.quadric or search != "interval" \
+                or raypoly.ray_degree(self.local_expr) < math.inf \
+                else raytrig.trig_sum(self.local_expr)
             self.ray_polynomial = search == "interval" and not self.quadric \
-                and raypoly.ray_degree(self.local_expr) < math.inf
+                and (raypoly.ray_degree(self.local_expr) < math.inf
+                     or self.ray_trig is not None)
             self.g_expr, self.h_expr = ray_derivatives(self.local_expr)
             # the grid's box: the cube about the box (cubic cells, see
             # _grid_box); the search keeps to the box itself
@@ -310,6 +317,7 @@ class Surface:
             self.cell_rows = None
         else:
             self.quadric = self.ray_polynomial = False
+            self.ray_trig = None
             self.cell_rows = tablemod.build(self.tables, lo, hi, self.depth)
             self.grid = gridmod.brick_map(lo, hi, self.depth, self.cell_rows.cells,
                                           self.cell_rows.tested)
@@ -698,8 +706,14 @@ class _Evaluator:
                                       * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
         self.dirs = {"dx": rays.d64[0], "dy": rays.d64[1], "dz": rays.d64[2]}
         # F's coefficients along each ray (a polynomial f), once per ray
-        self.poly = raypoly.ray_polynomial(self.f, rays.e64, rays.d64, K.m64) \
-            if self.mode == "interval" and not self.tabled and surf.ray_polynomial else None
+        self.poly = self.trig = None
+        if self.mode == "interval" and not self.tabled and surf.ray_polynomial:
+            if surf.ray_trig is not None:
+                # F's sinusoids along each ray, once per ray
+                self.trig = raytrig.ray_sinusoids(surf.ray_trig, rays.e64, rays.d64, K.m64)
+            else:
+                # F's coefficients along each ray (a polynomial f), once per ray
+                self.poly = raypoly.ray_polynomial(self.f, rays.e64, rays.d64, K.m64)
 
     def _point_env(self, s):
         """The ray's point at s (float64) and the rounding of its coordinates."""
@@ -721,7 +735,7 @@ class _Evaluator:
         (point, bounds, c2): c2, the curvature of F's quadratic form at the
         middle (interval mode; 0 elsewhere), for the start of Newton."""
         K, R = self.K, self.rays
-        if self.poly is not None:
+        if self.poly is not None or self.trig is not None:
             return self._poly_point_and_bounds(s, lo, hi, need)
         if self.tabled:
             env, err = self._point_env(s)
@@ -747,13 +761,20 @@ class _Evaluator:
         :meth:`test` rounds it), whose remainders are the higher terms."""
         dr, m64 = self.dr, self.K.m64
         Float64 = m64.Float
-        c, w = self.poly
         t = Float64(s)
-        cs, W = raypoly.shift(m64, c, w, t)
         r = Float64(_half_width(lo, hi))
         seg = Segment(m64, r)
-        at = dr.abs(t)
-        Qf, Qg = raypoly.forms(seg, cs, W, at)
+        if self.trig is not None:
+            Qf, Qg, F, eF = raytrig.forms(seg, self.trig, t,
+                                          [k.trig for k in self.surf.ray_trig.sinusoids])
+            g, c2 = Qf.c1, Qf.c2
+        else:
+            c, w = self.poly
+            cs, W = raypoly.shift(m64, c, w, t)
+            at = dr.abs(t)
+            Qf, Qg = raypoly.forms(seg, cs, W, at)
+            F, eF = cs[0], raypoly.bound(m64, W, at)
+            g, c2 = cs[1], cs[2]
         Fq, gq = quad_range(seg, Qf), quad_range(seg, Qg)
         inf = Float64(dr.inf)
         B = tuple(dr.select(need, v, dflt) for v, dflt in
@@ -765,14 +786,13 @@ class _Evaluator:
         # value, whose bound is the rounding at that point, decides (both
         # enclose the same exact value; a branch a packet takes only where
         # one of its lanes needs it)
-        F, eF = cs[0], raypoly.bound(m64, W, at)
 
         def at_point(s, F, eF):
             env, err = self._point_env(s)
             return evaluate_with_error(self.f, env, err, m64)
         F, eF = dr.if_stmt(args=(t, F, eF), cond=~(dr.abs(F) > eF), true_fn=at_point,
                            false_fn=lambda s, F, eF: (F, eF), label="lgshape_point")
-        return (F, eF, cs[1], None), B, cs[2]
+        return (F, eF, g, None), B, c2
 
     def point(self, s, rng, g_where=None):
         """F and g at s in float64 with error bounds of F (and of g where the
