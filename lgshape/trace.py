@@ -765,8 +765,7 @@ class _Evaluator:
         r = Float64(_half_width(lo, hi))
         seg = Segment(m64, r)
         if self.trig is not None:
-            Qf, Qg, F, eF = raytrig.forms(seg, self.trig, t,
-                                          [k.trig for k in self.surf.ray_trig.sinusoids])
+            Qf, Qg, F, eF = raytrig.forms(seg, self.trig, t, self.surf.ray_trig.sinusoids)
             g, c2 = Qf.c1, Qf.c2
         else:
             c, w = self.poly

@@ -113,7 +113,7 @@ def test02_forms_enclose_the_exact_values(name, rng):
     r = 10.0 ** rng.uniform(-6, np.log10(0.3), n)
     R = raytrig.ray_sinusoids(T, list(e.T), list(d.T), NUMPY)
     seg = Segment(NUMPY, r)
-    Qf, Qg, F, eF = raytrig.forms(seg, R, t, [k.trig for k in T.sinusoids])
+    Qf, Qg, F, eF = raytrig.forms(seg, R, t, T.sinusoids)
     worst = 0.0
     for i in range(n):
         E, D = [Dec(float(v)) for v in e[i]], [Dec(float(v)) for v in d[i]]

@@ -135,14 +135,15 @@ U32 = 2.0 ** -23
 
 @dataclass
 class RaySinusoids:
-    """One ray's F (arrays, float64): the constant C; per sinusoid the
-    amplitude A, phase alpha and frequency omega; and the bounds the forms
-    need: the j-th derivative's error at t is within B[j] + S[j] |t|
-    (j = 0..3); M3 and M4 bound F's third and fourth derivatives on the
-    whole ray."""
+    """One ray's F (arrays, float64): the constant C; per argument L_i its
+    value a and slope b along the ray; per sinusoid the amplitude A and
+    frequency omega; and the bounds the forms need: the j-th derivative's
+    error at t is within B[j] + S[j] |t| (j = 0..3); M3 and M4 bound F's
+    third and fourth derivatives on the whole ray."""
     C: object
+    a: list
+    b: list
     A: list
-    alpha: list
     omega: list
     B: list
     S: list
@@ -154,48 +155,51 @@ def ray_sinusoids(T: TrigSum, e, d, m) -> RaySinusoids:
     """F's sinusoids along rays e + t d (arrays of ``m``, float64; e, d
     exact), with their error bounds folded into per-ray constants.
 
-    Per sinusoid, with a, b the ray's value and slope of its argument
-    (errors e_alpha, e_omega) and Om = |omega| + e_omega >= |exact omega|:
-    the phase phi = alpha + omega t is within e_alpha + e_omega |t| +
-    2 u (|alpha| + |omega t|) of the exact one; float32 adds 2 U32 |phi| +
-    EPS_T32 to its sine and cosine (Lipschitz 1), the sums (n + 4) u per
-    term; the j-th derivative's omega^j is within j Om^(j-1) e_omega of the
-    exact one. So the j-th derivative's error is within
+    A test takes one float32 sine and cosine per argument, at phi_i = a_i +
+    b_i t, and a sinusoid's by the angle-addition rules. With e_a, e_b the
+    errors of a_i, b_i: phi_i is within e_a + e_b |t| + 2 u (|a_i| + |b_i
+    t|) of the exact phase; float32 adds 2 U32 |phi_i| + EPS_T32 (Lipschitz
+    1); each angle addition, of parts clamped to [-1, 1] (which moves no
+    value away from the exact one), adds its two parts' errors and 4 u;
+    the sum over sinusoids (n + 4) u a term. So a sinusoid's sine and
+    cosine are within base + slope |t| of the exact ones, base = sum_i (e_a
+    + k |a_i| + EPS_T32) + 4 u (k_i + 1) (k_i arguments), slope = sum_i
+    (e_b + k |b_i|), k = 2 u + 2.1 U32; with Om = |omega| + e_omega >=
+    |exact omega|,
+    the j-th derivative's error is within
 
-        sum |A| Om^j (e_alpha + (2 u + 2.1 U32) |alpha| + EPS_T32 + (n+4) u)
-          + e_A Om^j + j |A| Om^(j-1) e_omega                       (B[j])
-        + |t| sum |A| Om^j (e_omega + (2 u + 2.1 U32) |omega|)      (S[j]).
+        sum |A| Om^j (base + (n + 4) u) + e_A Om^j + j |A| Om^(j-1) e_omega
+          + |t| sum |A| Om^j slope.
     """
     u = m.u
     C, eC = evaluate_with_error(T.constant, {}, {}, m)
     coefs = [evaluate_with_error(c, {}, {}, m) for c in T.coefs]
-    lines = []
-    for L in T.args:
-        c, w = ray_polynomial(L, e, d, m)
-        lines.append((c[0], w[0], c[1], w[1]))
     n = len(T.sinusoids)
     k_phi = 2.0 * u + 2.1 * U32
-    out = RaySinusoids(C, [], [], [], [eC, 0.0, 0.0, 0.0], [0.0] * 4, 0.0, 0.0)
+    out = RaySinusoids(C, [], [], [], [], [eC, 0.0, 0.0, 0.0], [0.0] * 4, 0.0, 0.0)
+    errs = []           # per argument: (phase error at t = 0, its growth, e_b)
+    for L in T.args:
+        c, w = ray_polynomial(L, e, d, m)
+        out.a.append(c[0])
+        out.b.append(c[1])
+        errs.append((w[0] + k_phi * m.abs(c[0]) + EPS_T32, w[1] + k_phi * m.abs(c[1]), w[1]))
     for s in T.sinusoids:
         A, eA = coefs[s.coef]
         k = s.sign * 0.5 ** s.halves            # exact: a sign and a power of 2
         A, eA = k * A, abs(k) * eA
-        alpha, omega, ea, eo, ma, mo = None, None, 0.0, 0.0, 0.0, 0.0
+        omega, eo, mo = None, 0.0, 0.0
+        base, slope = 4.0 * u * (len(s.args) + 1), 0.0
         for sg, i in s.args:
-            a, wa, b, wb = lines[i]
-            alpha = sg * a if alpha is None else alpha + sg * a
+            b = out.b[i]
             omega = sg * b if omega is None else omega + sg * b
-            ea, eo = ea + wa, eo + wb
-            ma, mo = ma + m.abs(a), mo + m.abs(b)
-        ea = ea + len(s.args) * u * ma
+            mo = mo + m.abs(b)
+            base, slope, eo = base + errs[i][0], slope + errs[i][1], eo + errs[i][2]
         eo = eo + len(s.args) * u * mo
+        base = base + (n + 4) * u
         out.A.append(A)
-        out.alpha.append(alpha)
         out.omega.append(omega)
         aA = m.abs(A)
         Om = m.abs(omega) + eo
-        base = ea + k_phi * m.abs(alpha) + EPS_T32 + (n + 4) * u
-        slope = eo + k_phi * m.abs(omega)
         p_prev, p = 0.0, 1.0 + 0.0 * Om          # Om^(j-1), Om^j
         for j in range(4):
             out.B[j] = out.B[j] + aA * p * base + eA * p + j * aA * p_prev * eo
@@ -210,22 +214,36 @@ def ray_sinusoids(T: TrigSum, e, d, m) -> RaySinusoids:
     return out
 
 
-def forms(seg, R: RaySinusoids, t, trig_of):
+def forms(seg, R: RaySinusoids, t, sinusoids):
     """F's and F''s quadratic forms over |s| <= seg.r about t (float64),
-    and F(t) with its error bound: (Qf, Qg, F, eF). ``trig_of``: per
-    sinusoid, "sin" or "cos".
+    and F(t) with its error bound: (Qf, Qg, F, eF). ``sinusoids``: the
+    :class:`TrigSum`'s.
 
     A sine's j-th derivative at t is A omega^j times sin, cos, -sin, -cos
-    of phi = alpha + omega t (a cosine's: cos, -sin, -cos, sin); the errors
-    are B + S |t| (:class:`RaySinusoids`), the remainders M3 r^3 / 6 (F)
-    and M4 r^3 / 6 (F')."""
+    of its phase (a cosine's: cos, -sin, -cos, sin), whose sine and cosine
+    come from the arguments' by angle addition; the errors are B + S |t|
+    (:class:`RaySinusoids`), the remainders M3 r^3 / 6 (F) and M4 r^3 / 6
+    (F')."""
     from .quadratic import Quad
     m, r = seg.m, seg.r
     u = m.u
+    def clamp(v):
+        return m.minimum(m.maximum(v, -1.0), 1.0)
+    sc = [tuple(clamp(v) for v in m.sincos32(a + b * t)) for a, b in zip(R.a, R.b)]
     D = [None] * 4
-    for A, alpha, omega, trig in zip(R.A, R.alpha, R.omega, trig_of):
-        sn, cs = m.sincos32(alpha + omega * t)
-        v = (sn, cs, -sn, -cs) if trig == "sin" else (cs, -sn, -cs, sn)
+    for A, omega, k in zip(R.A, R.omega, sinusoids):
+        sn, cs = None, None
+        for j, (sg, i) in enumerate(k.args):
+            si, ci = sc[i]
+            if sg < 0:
+                si = -si
+            if j == 0:
+                sn, cs = si, ci
+                continue
+            if j >= 2:          # an angle addition's result, as a part
+                sn, cs = clamp(sn), clamp(cs)
+            sn, cs = sn * ci + cs * si, cs * ci - sn * si
+        v = (sn, cs, -sn, -cs) if k.trig == "sin" else (cs, -sn, -cs, sn)
         pw = A
         for j in range(4):
             D[j] = v[j] * pw if D[j] is None else D[j] + v[j] * pw
