@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from .node import ZERO, Expr, add, const, mul, sub, topological, var
+from .node import ZERO, Expr, add, const, mul, neg, product_chain, sub, topological, var
 from .ops import OPS
 
 DX, DY, DZ = var("dx"), var("dy"), var("dz")
@@ -62,23 +62,22 @@ _FACTOR_SCAN = 32
 
 
 def _product(e: Expr):
-    """e as coef * (f1 * f2 * ...): the constant and the other factors of
-    its chain of products and negations (None past ``_FACTOR_SCAN`` nodes)."""
-    coef, factors, stack = 1.0, [], [e]
-    for _ in range(_FACTOR_SCAN):
-        if not stack:
-            return coef, factors
-        n = stack.pop()
-        if n.op == "mul":
-            stack.extend(n.args)
-        elif n.op == "neg":
-            coef = -coef
-            stack.append(n.args[0])
-        elif n.op == "const":
-            coef *= n.param
-        else:
-            factors.append(n)
-    return None
+    """e's chain of products and negations (:func:`.node.product_chain`),
+    its plain constants apart; None past ``_FACTOR_SCAN`` nodes."""
+    return product_chain(e, lambda n: n.op == "const", _FACTOR_SCAN)
+
+
+def _rebuilt(negated, consts, factors) -> Expr:
+    """The product again; constants are multiplied as nodes, never folded
+    into one rounded number (the derivative stays the exact one)."""
+    out = None
+    for f in factors:
+        out = f if out is None else mul(out, f)
+    for c in consts:
+        out = c if out is None else (Expr("mul", (c, out)) if out.op == "const"
+                                     else mul(c, out))
+    out = const(1.0) if out is None else out
+    return neg(out) if negated else out
 
 
 def _factored(e: Expr) -> Expr:
@@ -90,15 +89,15 @@ def _factored(e: Expr) -> Expr:
     zero slope where it is clamped: bounded term by term, the step of the
     clamp's derivative multiplies each term's range, not their sum's).
     Interval arithmetic is subdistributive, so the factored form's
-    enclosures are never wider."""
+    enclosures are never wider; the value is the same real number."""
     if e.op not in ("add", "sub"):
         return e
     pa, pb = _product(e.args[0]), _product(e.args[1])
     if pa is None or pb is None:
         return e
-    rest_b = list(pb[1])
+    rest_b = list(pb[2])
     common, rest_a = [], []
-    for f in pa[1]:
+    for f in pa[2]:
         for i, g in enumerate(rest_b):
             if g is f:
                 common.append(f)
@@ -108,11 +107,7 @@ def _factored(e: Expr) -> Expr:
             rest_a.append(f)
     if not common:
         return e
-    a, b = const(pa[0]), const(pb[0])
-    for f in rest_a:
-        a = mul(a, f)
-    for f in rest_b:
-        b = mul(b, f)
+    a, b = _rebuilt(pa[0], pa[1], rest_a), _rebuilt(pb[0], pb[1], rest_b)
     out = add(a, b) if e.op == "add" else sub(a, b)
     for f in common:
         out = mul(out, f)

@@ -156,6 +156,29 @@ def topological(roots) -> list[Expr]:
     return order
 
 
+def product_chain(e: Expr, is_constant, limit: int | None = None):
+    """e as +-(c1 * c2 * ...) * (f1 * f2 * ...) through its products and
+    negations: (negated, [c1, ...], [f1, ...]), the c the nodes where
+    ``is_constant`` holds; None past ``limit`` nodes."""
+    negated, consts, factors, stack = False, [], [], [e]
+    seen = 0
+    while stack:
+        seen += 1
+        if limit is not None and seen > limit:
+            return None
+        n = stack.pop()
+        if n.op == "mul":
+            stack.extend(n.args)
+        elif n.op == "neg":
+            negated = not negated
+            stack.append(n.args[0])
+        elif is_constant(n):
+            consts.append(n)
+        else:
+            factors.append(n)
+    return negated, consts, factors
+
+
 def const(v: float) -> Expr:
     return Expr.lift(v)
 

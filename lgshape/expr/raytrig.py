@@ -27,7 +27,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .evaluate import evaluate_with_error
-from .node import Expr, topological
+from .node import Expr, product_chain
 from .raypoly import ray_polynomial
 
 #: The most sinusoids a ray holds (a product of n factors gives 2^(n-1)).
@@ -76,20 +76,11 @@ def trig_sum(f: Expr) -> TrigSum | None:
         if e.degree() == 0:
             consts.append(Expr("neg", (e,)) if sign < 0 else e)
             continue
-        factors, scale, todo = [], [], [e]
-        while todo:
-            n = todo.pop()
-            if n.op == "mul":
-                todo.extend(n.args)
-            elif n.op == "neg":
-                sign = -sign
-                todo.append(n.args[0])
-            elif n.degree() == 0:
-                scale.append(n)
-            elif n.op in _TRIG and n.args[0].degree() <= 1:
-                factors.append(n)
-            else:
-                return None
+        negated, scale, factors = product_chain(e, lambda n: n.degree() == 0)
+        if negated:
+            sign = -sign
+        if not all(n.op in _TRIG and n.args[0].degree() <= 1 for n in factors):
+            return None
         coef = Expr.lift(1.0)
         for c in scale:
             coef = Expr("mul", (coef, c))
