@@ -158,3 +158,22 @@ def test04_nested_integrator():
     assert img.shape[2] == ref.shape[2] + 1
     assert np.allclose(img[..., :3], ref[..., :3], atol=1e-6)
     assert (img[..., 3] > 0).mean() > 0.1
+
+
+def test05_gyroid_depth_in_the_integrator():
+    """The gyroid (the search on each ray's sinusoids, traced into the
+    integrator's kernel) renders the depth of the direct query. Oracle:
+    an independent Surface's ``intersect`` on the same rays, itself held
+    against a float64 scan in test_08; and the floor plane in closed form."""
+    scene = aov_scene({"type": "lgsurface", "surface": "gyroid"}, aovs="dd.y:depth")
+    depth = channels(scene)["dd.y.T"].ravel()
+    o, d = pixel_rays(scene)
+    surf = lgshape.Surface(surfaces.gyroid())
+    assert surf.ray_trig is not None
+    t, hit = surf.intersect(mi.Point3f(o.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
+    t, hit = np.array(t, np.float64), np.array(hit)
+    t_floor = np.where(d[:, 2] < 0, (-1.2 - o[:, 2]) / d[:, 2], np.inf)
+    t_floor[np.abs(o[:, :2] + t_floor[:, None] * d[:, :2]).max(1) > 5] = np.inf
+    expect = np.where(hit & (t < t_floor), t, np.where(np.isfinite(t_floor), t_floor, 0.0))
+    assert (hit & (t < t_floor)).mean() > 0.1
+    assert np.mean(np.abs(depth - expect) < 1e-4 * np.maximum(expect, 1)) > 0.995
