@@ -303,12 +303,11 @@ class Surface:
             #: A sum of products of sines and cosines of affine functions
             #: (:mod:`lgshape.expr.raytrig`: the gyroid, Schwarz's surfaces)
             #: is taken the same way, as each ray's sum of sinusoids.
-            self.ray_trig = None if self.quadric or search != "interval" \
-                or raypoly.ray_degree(self.local_expr) < math.inf \
+            polynomial = raypoly.ray_degree(self.local_expr) < math.inf
+            self.ray_trig = None if self.quadric or search != "interval" or polynomial \
                 else raytrig.trig_sum(self.local_expr)
             self.ray_polynomial = search == "interval" and not self.quadric \
-                and (raypoly.ray_degree(self.local_expr) < math.inf
-                     or self.ray_trig is not None)
+                and (polynomial or self.ray_trig is not None)
             self.g_expr, self.h_expr = ray_derivatives(self.local_expr)
             # the grid's box: the cube about the box (cubic cells, see
             # _grid_box); the search keeps to the box itself
@@ -754,11 +753,13 @@ class _Evaluator:
         return self.point(s, rng), self._bounds(lo, hi, need), 0.0
 
     def _poly_point_and_bounds(self, s, lo, hi, need):
-        """:meth:`point_and_bounds` from the ray's polynomial: its
-        coefficients about s (the interval's middle where ``need``) give
-        F(s) with its error bound and F's slope and curvature there, and
-        F's and g's quadratic forms over the interval's half width r (as
-        :meth:`test` rounds it), whose remainders are the higher terms."""
+        """:meth:`point_and_bounds` from the ray's polynomial (its
+        coefficients shifted to s) or its sinusoids (their values and
+        derivatives at s): F(s) with its error bound, F's slope and
+        curvature there, and F's and g's quadratic forms over the
+        interval's half width r (as :meth:`test` rounds it), whose
+        remainders are the higher terms (s: the interval's middle where
+        ``need``)."""
         dr, m64 = self.dr, self.K.m64
         Float64 = m64.Float
         t = Float64(s)

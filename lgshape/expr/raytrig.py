@@ -10,17 +10,19 @@ sum of sinusoids. So
 
 trig_k = sin or cos, with the phases alpha_k, frequencies omega_k and
 amplitudes A_k computed once per ray (:func:`ray_sinusoids`). At any t,
-one sine and cosine per sinusoid give F(t) and all its derivatives, and a
-bound of |F'''| and |F''''| over the whole ray (sum |A_k| |omega_k|^3,
-^4) is each form's remainder (:func:`forms`): F's and F''s quadratic
-forms over |s - t| <= r without evaluating the expression again.
+one float32 sine and cosine per argument L_i give every sinusoid's (by
+angle addition), hence F(t) and its derivatives, and a bound of the third
+and fourth derivatives over the whole ray (sum |A_k| |omega_k|^3, ^4) is
+each form's remainder (:func:`forms`): F's and F''s quadratic forms over
+|s - t| <= r without evaluating the expression again.
 
 Errors: the ray is exact as given (the search's float64 ray); a, b and the
 constants come with running error bounds (:mod:`.raypoly`, the point-error
 rules), and the bounds of :func:`forms` cover the phases' and frequencies'
-roundings, the library's sine and cosine (as :func:`lgshape.pointerror.e_periodic`)
-and the sums. Anything NaN or infinite gives infinite or NaN bounds: no
-information, never a wrong one.
+roundings, the float32 sine and cosine (their library error and the
+argument's rounding and reduction, as :func:`lgshape.pointerror.e_periodic`
+models them), the angle additions and the sums. Anything NaN or infinite
+gives infinite or NaN bounds: no information, never a wrong one.
 """
 from __future__ import annotations
 
