@@ -110,7 +110,8 @@ class Rays:
     def __init__(self, o, d, t_min=0.0):
         import drjit as dr
         import mitsuba as mi
-        from drjit.llvm.ad import Array3f
+        from .trace import default_array3f
+        Array3f = default_array3f()
         self.o, self.d, self.t_min = np.asarray(o, np.float32), np.asarray(d, np.float32), t_min
         self.o_dr, self.d_dr = Array3f(self.o.T.copy()), Array3f(self.d.T.copy())
         # Mitsuba's rays have no t_min: start them t_min further along (not

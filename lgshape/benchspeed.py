@@ -508,15 +508,15 @@ def bench_cornell(cfg: SpeedConfig, log, meshes=None):
 
 # ---- First-image latency ------------------------------------------------------------
 
-def probe(scene_path, res, spp):
-    """In this process (a fresh one): load the scene, render it twice at
-    ``spp``; the times."""
+def probe(scene_path, res, spp, variant=VARIANT):
+    """In this process (a fresh one): load the scene, render it three times
+    at ``spp`` on ``variant``; the times."""
     t0 = time.perf_counter()
     import drjit as dr
 
     import lgshape  # noqa: F401
     from .cli import use_variant
-    mi = use_variant(VARIANT)
+    mi = use_variant(variant)
     t_import = time.perf_counter() - t0
     t0 = time.perf_counter()
     scene = mi.load_file(scene_path, resx=str(res), resy=str(res), spp=str(spp))
@@ -547,7 +547,7 @@ def probe(scene_path, res, spp):
             "ir_ops": max((k.get("operation_count", 0) for k in first), default=0)}
 
 
-def bench_compile(cfg: SpeedConfig, log):
+def bench_compile(cfg: SpeedConfig, log, variant=VARIANT):
     """Cold and warm first renders of the default scene, each in a subprocess
     sharing one fresh HOME."""
     rec = {"scene": "scenes/cornell.xml", "res": cfg.probe_res, "spp": cfg.probe_spp}
@@ -555,7 +555,7 @@ def bench_compile(cfg: SpeedConfig, log):
         env = dict(os.environ, HOME=home)
         for key in PROBES:
             cmd = [sys.executable, "-m", "lgshape.benchspeed", "--probe", CORNELL,
-                   str(cfg.probe_res), str(cfg.probe_spp)]
+                   str(cfg.probe_res), str(cfg.probe_spp), variant]
             t0 = time.perf_counter()
             try:
                 p = subprocess.run(cmd, env=env, capture_output=True, text=True,
@@ -584,7 +584,7 @@ def bench_compile(cfg: SpeedConfig, log):
 # ---- Run ----------------------------------------------------------------------------
 
 def run(log=None, quick=False, surfaces=None, cornell=True, compile_latency=True,
-        cfg: SpeedConfig | None = None) -> dict:
+        cfg: SpeedConfig | None = None, variant: str = VARIANT) -> dict:
     """The whole section: {"meta", "rows", "cornell", "compile"} (JSON-ready
     apart from inf/NaN, which :func:`lgshape.bench._finite` clears)."""
     import mitsuba as mi
@@ -595,11 +595,11 @@ def run(log=None, quick=False, surfaces=None, cornell=True, compile_latency=True
     cfg = cfg or (QUICK if quick else FULL)
     if surfaces is not None:
         cfg = SpeedConfig(**{**asdict(cfg), "surfaces": tuple(surfaces)})
-    mi.set_variant(VARIANT)
+    mi.set_variant(variant)
     lgshape.register_plugins()
     t_start = time.perf_counter()
     load = os.getloadavg() if hasattr(os, "getloadavg") else ()
-    meta = {"quick": bool(quick), "config": asdict(cfg), "variant": VARIANT, "seed": SEED,
+    meta = {"quick": bool(quick), "config": asdict(cfg), "variant": variant, "seed": SEED,
             "shadow_offset_diag": SHADOW_OFFSET, "light": {"distance_half_diag": LIGHT_DISTANCE,
                                                            "direction": list(LIGHT_DIR)},
             "st_eps_diag": ST_EPS, "machine": bench._machine(), "git": bench._git(),
@@ -615,7 +615,7 @@ def run(log=None, quick=False, surfaces=None, cornell=True, compile_latency=True
         out["cornell"] = bench_cornell(cfg, log, meshes)
     meshes.clear()
     if compile_latency:
-        out["compile"] = bench_compile(cfg, log)
+        out["compile"] = bench_compile(cfg, log, variant)
     load = os.getloadavg() if hasattr(os, "getloadavg") else ()
     meta["loadavg_end"] = " ".join(f"{v:.2f}" for v in load)
     meta["seconds"] = round(time.perf_counter() - t_start, 1)
@@ -830,7 +830,7 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["--probe"]:
-        print(json.dumps(probe(argv[1], int(argv[2]), int(argv[3]))))
+        print(json.dumps(probe(argv[1], int(argv[2]), int(argv[3]), *argv[4:5])))
         return 0
     p = argparse.ArgumentParser(prog="python -m lgshape.benchspeed",
                                 description="The speed section of the benchmark.")
@@ -839,13 +839,15 @@ def main(argv=None) -> int:
     p.add_argument("--surfaces", nargs="+", choices=sorted(LIBRARY), metavar="NAME")
     p.add_argument("--no-cornell", dest="cornell", action="store_false")
     p.add_argument("--no-compile", dest="compile", action="store_false")
+    p.add_argument("--variant", default=VARIANT,
+                   help=f"Mitsuba variant, a JIT one (default: {VARIANT}; cuda_ad_rgb on a GPU)")
     args = p.parse_args(argv)
     t0 = time.perf_counter()
 
     def log(msg):
         print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
     results = run(log, quick=args.quick, surfaces=args.surfaces, cornell=args.cornell,
-                  compile_latency=args.compile)
+                  compile_latency=args.compile, variant=args.variant)
     os.makedirs(os.path.join(args.out, "charts"), exist_ok=True)
     chart(results, os.path.join(args.out, "charts", "speed.png"))
     with open(os.path.join(args.out, "speed.json"), "w") as fh:

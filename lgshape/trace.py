@@ -76,6 +76,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import sys
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -553,9 +554,23 @@ def _points(p):
     import drjit as dr
     if dr.is_array_v(p):
         return p
-    from drjit.llvm.ad import Array3f
     a = _as_n3(p, "p")
-    return Array3f(np.ascontiguousarray(a.T))
+    return default_array3f()(np.ascontiguousarray(a.T))
+
+
+def default_array3f():
+    """The Array3f that numpy points and rays become: the backend of
+    Mitsuba's variant when a CUDA one is set, else LLVM."""
+    mi = sys.modules.get("mitsuba")
+    try:
+        cuda = mi is not None and mi.variant() is not None and mi.variant().startswith("cuda")
+    except (AttributeError, ImportError):          # no variant module loaded yet
+        cuda = False
+    if cuda:
+        from drjit.cuda.ad import Array3f
+    else:
+        from drjit.llvm.ad import Array3f
+    return Array3f
 
 
 def _as_n3(v, name):
@@ -573,7 +588,9 @@ def _rays(o, d, t_min, t_max, active):
     """Checked ray arrays: (o, d, n) with o, d Dr.Jit Array3f."""
     import drjit as dr
     if not dr.is_array_v(o) or not dr.is_array_v(d):
-        from drjit.llvm.ad import Array3f
+        # numpy beside a Dr.Jit array takes that array's type (and backend)
+        Array3f = (type(o) if dr.is_array_v(o) else type(d) if dr.is_array_v(d)
+                   else default_array3f())
         conv = []
         for name, v in (("o", o), ("d", d)):
             if dr.is_array_v(v):

@@ -1,5 +1,8 @@
 """Shared cases for the numbered tests: one expression per op of the op
 table (so a new op row is picked up) and the surface library."""
+import importlib
+import os
+
 import lgshape  # noqa: F401  (sets up libLLVM before drjit is imported)
 import numpy as np
 import pytest
@@ -7,6 +10,16 @@ import pytest
 from lgshape.expr import node as N
 from lgshape.expr.ops import OPS
 from lgshape.surfaces import LIBRARY
+
+# The Mitsuba variant the suite runs on: llvm_ad_rgb, or another JIT variant
+# (LGSHAPE_TEST_VARIANT=cuda_ad_rgb on a machine with a GPU); JIT and JIT_AD
+# are the matching Dr.Jit modules (drjit.llvm / drjit.llvm.ad, or CUDA's).
+VARIANT = os.environ.get("LGSHAPE_TEST_VARIANT", "llvm_ad_rgb")
+JIT = importlib.import_module("drjit.cuda" if VARIANT.startswith("cuda") else "drjit.llvm")
+JIT_AD = importlib.import_module(JIT.__name__ + ".ad")
+if VARIANT != "llvm_ad_rgb":
+    import mitsuba
+    mitsuba.set_variant(VARIANT)     # numpy rays then go to its backend (trace.default_array3f)
 
 x, y, z = N.var("x"), N.var("y"), N.var("z")
 u = x * y - z + 0.3          # a non-trivial argument, so composition is exercised

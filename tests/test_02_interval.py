@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 from conftest import ALL_CASES, case_expr, case_id, random_boxes
 
-from drjit.llvm import Float
+from conftest import JIT
+
+Float = JIT.Float
 
 from lgshape import bounds
 from lgshape.arraymath import NUMPY, DrJitMath

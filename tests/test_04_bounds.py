@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 from conftest import SURFACE_NAMES, random_boxes
 
-from drjit.llvm import Float
+from conftest import JIT
+
+Float = JIT.Float
 
 from lgshape import bounds
 from lgshape.arraymath import NUMPY, DrJitMath

@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 from conftest import ALL_CASES, case_expr, case_id
 
-from drjit.llvm import Float
+from conftest import JIT
+
+Float = JIT.Float
 
 from lgshape.arraymath import NUMPY, DrJitMath
 from lgshape.bounds import segment_env

@@ -6,7 +6,7 @@ must lie in an occupied cell (or within the cell inflation of one). Memory is
 checked against the dense alternative."""
 import numpy as np
 import pytest
-from conftest import SURFACE_NAMES
+from conftest import JIT_AD, SURFACE_NAMES
 
 from lgshape import grid as G
 from lgshape.expr import evaluate
@@ -155,7 +155,7 @@ def test07_walk_visits_every_cell_a_line_crosses(dense, octants, rng, monkeypatc
     segment, and the segments are disjoint, in order, and one cell long at
     most. A few rays run along an axis (direction 0 on the others)."""
     import drjit as dr
-    from drjit.llvm.ad import Float
+    Float = JIT_AD.Float
     spec = LIBRARY["torus"]()
     g = G.build(spec.expr, *spec.bbox, depth=6)
     if not dense:

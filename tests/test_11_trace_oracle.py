@@ -45,6 +45,7 @@ import pytest
 import lgshape
 from lgshape.reference import along, clip_to_box, polynomial_roots
 from oracles import check_first_roots, sphere_roots
+from conftest import JIT_AD
 
 PHI = (1 + math.sqrt(5)) / 2
 S2 = math.sqrt(2)
@@ -211,8 +212,7 @@ def test02b_brick_map_walk(name, monkeypatch):
 
 
 def _llvm_float():
-    from drjit.llvm.ad import Float
-    return Float
+    return JIT_AD.Float
 
 def _check(surf, F, degree, o32, d32, groups, min_simple=30_000, tangent_max=TANGENT_MAX,
            roots=None, t_min=0.0):

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 import drjit as dr
-from drjit.llvm.ad import Array3f, Float
+from conftest import JIT_AD
+
+Array3f, Float = JIT_AD.Array3f, JIT_AD.Float
 
 import lgshape
 import lgshape.primitives
@@ -202,3 +204,18 @@ def test08_frozen_queries_match_traced_ones(form, rng):
     assert all(counts[-1][k] - counts[-3][k] <= 1 for k in (0, 1)), counts
     assert min(counts[0]) >= 1           # the queries did run frozen
 
+
+
+def test09_numpy_rays_follow_the_variant():
+    """numpy rays go to the backend of Mitsuba's variant (the suite's, LLVM
+    or CUDA), and numpy beside a Dr.Jit array takes that array's type.
+    Oracle: the sphere's analytic distance, 2 - 1 = 1."""
+    import mitsuba as mi
+    from conftest import VARIANT
+    mi.set_variant(VARIANT)
+    surf = lgshape.Surface(lgshape.surfaces.LIBRARY["sphere"]())
+    o, d = np.array([[0.0, 0.0, -2.0]]), np.array([[0.0, 0.0, 1.0]])
+    assert lgshape.trace.default_array3f() is JIT_AD.Array3f
+    for rays in ((o, d), (Array3f(o.T), d), (o, Array3f(d.T))):
+        res = surf.trace(*rays)
+        assert type(res.t) is Float and math.isclose(res.t[0], 1.0, rel_tol=1e-6)

@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 
 import drjit as dr
-from drjit.llvm.ad import Array3f, Float
+from conftest import JIT_AD
+
+Array3f, Float = JIT_AD.Array3f, JIT_AD.Float
 
 import lgshape
 from lgshape.camera import primary_rays

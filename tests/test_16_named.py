@@ -13,6 +13,7 @@ from lgshape.arraymath import NUMPY
 from lgshape.expr import evaluate
 from lgshape.expr.node import named
 from lgshape.tables import _structure
+from conftest import VARIANT
 
 TEXT = "x^2 + y^2 + z^2 - radius^2 + k*x*y - k"
 
@@ -76,7 +77,7 @@ def test_library_parameter_update_keeps_kernels(surface, key, values):
     filter: bit for bit)."""
     import drjit as dr
     import mitsuba as mi
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(VARIANT)
     lgshape.register_plugins()
 
     def scene(value):

@@ -12,6 +12,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+from conftest import VARIANT
 
 SPHERE = {"type": "lgsurface", "expr": "x^2 + y^2 + z^2 - 1",
           "bbox_min": [-1.1, -1.1, -1.1], "bbox_max": [1.1, 1.1, 1.1]}
@@ -19,7 +20,7 @@ SPHERE = {"type": "lgsurface", "expr": "x^2 + y^2 + z^2 - 1",
 
 @pytest.fixture(autouse=True)
 def variant():
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(VARIANT)
     lgshape.register_plugins()
 
 

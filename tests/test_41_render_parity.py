@@ -13,13 +13,14 @@ import lgshape  # noqa: F401  (before mitsuba: sets up libLLVM)
 import mitsuba as mi
 import numpy as np
 import pytest
+from conftest import VARIANT
 
 RES, SPP, FACTOR = 40, 64, 1.5
 
 
 @pytest.fixture(autouse=True)
 def variant():
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(VARIANT)
     lgshape.register_plugins()
 
 

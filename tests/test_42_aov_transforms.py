@@ -17,13 +17,14 @@ import numpy as np
 import pytest
 
 from lgshape import surfaces
+from conftest import VARIANT
 
 RES = 32
 
 
 @pytest.fixture(autouse=True)
 def variant():
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(VARIANT)
     lgshape.register_plugins()
 
 

@@ -25,6 +25,7 @@ import OpenEXR
 import pytest
 
 from lgshape import cli
+from conftest import VARIANT
 
 SCENES = sorted((pathlib.Path(__file__).parent.parent / "scenes").glob("*.xml"))
 #: A small render for the CLI tests (16x12, 2 spp).
@@ -91,9 +92,10 @@ SPHERE_SCENE = """<scene version="3.0.0">
 
 
 @pytest.fixture(autouse=True)
-def variant():
-    mi.set_variant("llvm_ad_rgb")
+def variant(monkeypatch):
+    mi.set_variant(VARIANT)
     lgshape.register_plugins()
+    monkeypatch.setattr(cli, "DEFAULT_VARIANT", VARIANT)    # in-process `lgshape render`
 
 
 def read_exr(path):

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from lgshape.expr.parser import ParseError, free_names, parse
+from conftest import VARIANT
 
 RES = 24
 BOX = {"bbox_min": [-1.1, -1.1, -1.1], "bbox_max": [1.1, 1.1, 1.1]}
@@ -31,7 +32,7 @@ TORUS = {"type": "lgsurface", "surface": "torus", "R": 0.9}
 
 @pytest.fixture(autouse=True)
 def variant():
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(VARIANT)
     lgshape.register_plugins()
 
 
