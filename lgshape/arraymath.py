@@ -27,6 +27,7 @@ class NumpyMath:
     sqrt, exp, log = staticmethod(np.sqrt), staticmethod(np.exp), staticmethod(np.log)
     sin, cos, abs = staticmethod(np.sin), staticmethod(np.cos), staticmethod(np.abs)
     floor, ceil, isnan = staticmethod(np.floor), staticmethod(np.ceil), staticmethod(np.isnan)
+    isfinite = staticmethod(np.isfinite)
     minimum, maximum = staticmethod(np.minimum), staticmethod(np.maximum)
     select = staticmethod(np.where)
 
@@ -70,7 +71,7 @@ class DrJitMath:
         self._consts: dict[float, object] = {}
         self.sqrt, self.exp, self.log = dr.sqrt, dr.exp, dr.log
         self.sin, self.cos, self.abs = dr.sin, dr.cos, dr.abs
-        self.floor, self.ceil, self.isnan = dr.floor, dr.ceil, dr.isnan
+        self.floor, self.ceil, self.isnan, self.isfinite = dr.floor, dr.ceil, dr.isnan, dr.isfinite
         self.minimum, self.maximum, self.select = dr.minimum, dr.maximum, dr.select
 
     def sincos32(self, v):

@@ -1155,6 +1155,9 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
     return RayResult(Float(t64), hit, lane.evals, lane.iters, capped, lane.unres & hit, t64)
 
 
+#: Left Bezier-clipping steps before the walk, for a polynomial f.
+POLY_CLIP_STEPS = 1
+
 # What a lane does in one iteration of the search loop (``_Lane.mode``).
 SEEK, SEARCH, TINY_A, TINY_B, EDGE, END = range(6)
 
@@ -1222,6 +1225,8 @@ def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
     lane = _Lane.start(ev, active)
     if ev.mode == "interval" and ev.surf.quadric:
         _clip_quadric(ev, lane, active, any_hit)
+    elif ev.poly is not None and POLY_CLIP_STEPS > 0:
+        _clip_polynomial(ev, lane, active)
     out = dr.while_loop(state=lane.astuple(),
                         cond=lambda mode, *_: mode != END, body=body, label="lgshape_search")
     return _Lane(*out)
@@ -1244,6 +1249,27 @@ def _clip_quadric(ev: _Evaluator, lane: _Lane, active, any_hit):
     lane.t_hi = dr.select(crossed, b_hi, lane.t_hi)
     lane.s_lo = dr.select(crossed, s_lo, lane.s_lo)
     lane.t = dr.select(crossed, 0.5 * (b_lo + b_hi), lane.t)
+    lane.evals = lane.evals + dr.select(active, 1, 0)
+
+
+def _clip_polynomial(ev: _Evaluator, lane: _Lane, active):
+    """Clip, for a polynomial f (the ray's coefficients), before any walk:
+    the convex hulls of F's Bernstein coefficients prove that no root lies
+    before ``first`` on the ray, or none at all
+    (:func:`lgshape.expr.raypoly.clip_first_root`); the walk starts there.
+    Rays that miss the surface, most of a camera's rays in the box, end
+    here without walking the empty cells."""
+    import drjit as dr
+    Float = ev.K.m.Float
+    c, w = ev.poly
+    free, first = raypoly.clip_first_root(ev.K.m64, c, w, ev.K.m64.Float(ev.rays.span),
+                                          steps=POLY_CLIP_STEPS)
+    first = Float(first)
+    first = dr.maximum(first - dr.abs(first) * 2.0**-22, 0.0)    # float32, rounded down
+    free = active & free
+    lane.s_cur = dr.select(active, first, lane.s_cur)
+    lane.mode = dr.select(free, END, lane.mode)
+    lane.outcome = dr.select(free, NONE, lane.outcome)
     lane.evals = lane.evals + dr.select(active, 1, 0)
 
 

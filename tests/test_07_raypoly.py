@@ -148,3 +148,58 @@ def test04_only_polynomials():
         assert not lgshape.Surface(lgshape.parse(f), ((-1,) * 3, (1,) * 3)).ray_polynomial, f
     with pytest.raises(ValueError, match="polynomial"):
         raypoly.ray_polynomial(lgshape.parse("sin(x) + y^3"), [0.0] * 3, [1.0] * 3, NUMPY)
+
+
+def _real_roots(ex, span):
+    """The real roots in [0, span] of the exact polynomial (float64 roots
+    of its coefficients rounded once; complex pairs kept within 1e-7)."""
+    c = np.array([float(v) for v in ex])
+    while len(c) > 1 and c[-1] == 0:
+        c = c[:-1]
+    if len(c) < 2:
+        return np.array([])
+    r = np.roots(c[::-1])
+    r = r[np.abs(r.imag) <= 1e-7 * max(1.0, span)].real
+    return np.sort(r[(r >= -1e-9 * span) & (r <= span * (1 + 1e-9))])
+
+
+@pytest.mark.parametrize("steps", [1, 3])
+@pytest.mark.parametrize("name", POLYNOMIALS + ["x^2 + y^2 + z^2 - 1"])
+def test05_clip_keeps_the_first_root(name, steps, rng):
+    """Bezier clipping before the walk (:func:`raypoly.clip_first_root`)
+    never moves past the first root on [0, span], and calls a ray free of
+    roots only where it has none. Oracle: the real roots of the exact
+    polynomial (fractions) in [0, span], from numpy's companion matrix; a
+    root within 1e-9 span of the clip counts as kept. Rays: random through
+    the unit ball, and (the sphere) tangent rays (a double root) and rays
+    from a root (F(0) = 0) or to one (F(span) = 0). Not vacuous: a share of
+    the rays without roots (a tenth at least) is proven free, and some
+    clips move past a tenth of the way to the first root."""
+    f = _expr(name)
+    cases = []
+    for _ in range(60):
+        e = rng.normal(size=3)
+        e *= 2.5 / np.linalg.norm(e)
+        d = -e / 2.5 + 0.5 * rng.normal(size=3)
+        cases.append((e, d, float(rng.uniform(1.0, 6.0))))
+    if name.startswith("x^2"):
+        for _ in range(10):
+            u = rng.normal(size=3); u /= np.linalg.norm(u)
+            v = np.cross(u, rng.normal(size=3)); v /= np.linalg.norm(v)
+            cases.append((u - 0.7 * v, v, 1.4))       # tangent at u, s = 0.7
+            cases.append((u, v + 0.3 * u, 2.0))       # F(0) = 0 (to rounding)
+            cases.append((u - 2.0 * v, v, 2.0))       # F(2) = 0: the root at the end
+    freed = clipped = no_roots = 0
+    for e, d, span in cases:
+        c, w = raypoly.ray_polynomial(f, list(e), list(d), NUMPY)
+        free, first = raypoly.clip_first_root(NUMPY, np.array(c), np.array(w),
+                                              np.float64(span), steps)
+        roots = _real_roots(_exact(f, e, d), span)
+        if len(roots):
+            assert not free, (name, e, d, span, roots)
+            assert first <= roots[0] + 1e-9 * span, (name, first, roots[0])
+            clipped += first > 0.1 * roots[0]
+        else:
+            no_roots += 1
+            freed += bool(free)
+    assert freed >= 0.1 * no_roots and clipped > 0, (freed, no_roots, clipped)

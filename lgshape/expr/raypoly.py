@@ -195,3 +195,84 @@ def forms(seg, cs, W, at):
             Rg = Rg + k * m.abs(cs[k]) * rk
     Qg = Quad(coef[1], 2.0 * coef[2], c3, Rg * up)
     return Qf, Qg
+
+
+def _bernstein_weights(n: int):
+    """lam[j][k] = C(j, k) / C(n, k) for k <= j: the Bernstein coefficients
+    over [0, 1] of a polynomial sum_k d_k u^k are b_j = sum_k lam[j][k] d_k."""
+    return [[math.comb(j, k) / math.comb(n, k) for k in range(j + 1)] for j in range(n + 1)]
+
+
+def clip_first_root(m, c, w, span, steps: int = 3):
+    """Where the first root of F on [0, span] can be, from the convex hull
+    of F's Bernstein coefficients (Bezier clipping from both ends, ``steps``
+    times): (free, first), float64. ``free``: F has no root in [0, span];
+    else none in [0, first).
+
+    One step, on [a, a + h]: the coefficients about a (:func:`shift`),
+    scaled to u in [0, 1] (d_k = c'_k h^k), and their Bernstein
+    coefficients b_j. Every error is in one bound E: the shift's W(a + h),
+    and the roundings of the scaling and of the sums (each b_j within
+    (2n + 6) u sum |d_k| of its exact value). Where b_0 is beyond E, with s
+    its sign, beta_j = s b_j - E are the control points of a polynomial
+    below s F(a + u h). They lie above the line beta_0 + sigma u, sigma =
+    min_j (beta_j - beta_0) n / j (a supporting line at the first point;
+    sum_j (j / n) B_j(u) = u), so s F > 0 for u < beta_0 / -sigma, and
+    everywhere on [0, 1] where sigma >= 0. The same from the right end
+    (b_n beyond E) shortens h; where the two clips meet, no root. NaN or
+    infinite coefficients clip nothing."""
+    n = len(c) - 1
+    u = m.u
+    lam = _bernstein_weights(n)
+    zero = 0.0 * span
+    a, h = zero, span * (1.0 + 4.0 * u)
+    free = zero != zero                                  # all False
+    for step in range(steps):
+        # (about a = 0 at first: the coefficients as they are)
+        cs, W = (c, [4.0 * (n + 1) * u * m.abs(ci) + wi for ci, wi in zip(c, w)]) \
+            if step == 0 else shift(m, c, w, a)
+        d, hk = [], 1.0 + zero
+        for k in range(n + 1):
+            d.append(cs[k] * hk)
+            hk = hk * h
+        M = zero
+        for v in d:
+            M = M + m.abs(v)
+        E = bound(m, W, a + h) + (4.0 * n + 16.0) * u * M
+        b = []
+        for j in range(n + 1):
+            s = d[0] * lam[j][0]
+            for k in range(1, j + 1):
+                s = s + d[k] * lam[j][k]
+            b.append(s)
+        finite = m.isfinite(E)
+        tl = _clip_from(m, b, E, n)
+        tr = _clip_from(m, b[::-1], E, n)
+        tl = m.select(finite, tl, 0.0)
+        tr = m.select(finite, tr, 0.0)
+        # the quotients with 2^-40 relative to spare for their roundings
+        tl, tr = tl * (1.0 - 2.0**-40), tr * (1.0 - 2.0**-40)
+        clear = tl + tr > 1.0
+        free = free | clear
+        a_next = a + tl * h
+        a_next = a_next - (m.abs(a_next) * 2.0**-50 + 2.0**-1020)      # rounded down
+        end = a + h * (1.0 - tr)
+        end = end + (m.abs(end) * 2.0**-50 + 2.0**-1020)               # rounded up
+        keep = ~free
+        a = m.select(keep, m.maximum(a_next, a), a)
+        h = m.select(keep, m.minimum((end - a) * (1.0 + 4.0 * u), h), h)
+    return free, m.select(free, span, a)
+
+
+def _clip_from(m, b, E, n):
+    """How far from b's first end, as a fraction of the interval, s F keeps
+    its sign (0 where b_0 is within E of 0; >= 1: everywhere)."""
+    pos = b[0] > E
+    sg = m.select(pos, 1.0, -1.0)
+    beta0 = sg * b[0] - E
+    slope = None
+    for j in range(1, n + 1):
+        v = (sg * b[j] - E - beta0) * (n / j)
+        slope = v if slope is None else m.minimum(slope, v)
+    theta = m.select(slope >= 0, 2.0, beta0 / m.maximum(-slope, 1e-300))
+    return m.select((beta0 > 0) & (theta == theta), m.minimum(theta, 2.0), 0.0)
