@@ -1225,8 +1225,13 @@ def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
     lane = _Lane.start(ev, active)
     if ev.mode == "interval" and ev.surf.quadric:
         _clip_quadric(ev, lane, active, any_hit)
-    elif ev.poly is not None and POLY_CLIP_STEPS > 0:
-        _clip_polynomial(ev, lane, active)
+    else:
+        if ev.poly is not None and POLY_CLIP_STEPS > 0:
+            _clip_polynomial(ev, lane, active)
+        # the first walk before the loop: a ray that meets no occupied cell
+        # ends here, and a packet of such rays never runs the loop's body
+        # (after a quadric's clip, few rays walk: 0.88x there)
+        _walk(ev, walker, lane)
     out = dr.while_loop(state=lane.astuple(),
                         cond=lambda mode, *_: mode != END, body=body, label="lgshape_search")
     return _Lane(*out)
