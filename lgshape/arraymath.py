@@ -38,6 +38,10 @@ class NumpyMath:
         return np.float64(c)
 
     @staticmethod
+    def sincos(v):
+        return np.sin(v), np.cos(v)
+
+    @staticmethod
     def sincos32(v):
         """sin v and cos v computed in float32 (v rounded to float32)."""
         v32 = np.asarray(v).astype(np.float32)
@@ -73,6 +77,9 @@ class DrJitMath:
         self.sin, self.cos, self.abs = dr.sin, dr.cos, dr.abs
         self.floor, self.ceil, self.isnan, self.isfinite = dr.floor, dr.ceil, dr.isnan, dr.isfinite
         self.minimum, self.maximum, self.select = dr.minimum, dr.maximum, dr.select
+
+    def sincos(self, v):
+        return self.dr.sincos(v)
 
     def sincos32(self, v):
         """sin v and cos v computed in float32 (v rounded to float32), in

@@ -834,6 +834,18 @@ class _Evaluator:
         (F, eF), (g, eg) = evaluate_with_error([self.f, self.ge], env, err, m64)
         return F, eF, g, eg
 
+    def steer(self, s, rng):
+        """F and g at s (float64) for Newton's steps, without error bounds:
+        from the ray's coefficients (Horner) for a polynomial f, its
+        sinusoids for a sum of sines and cosines, else :meth:`point`."""
+        if self.trig is not None:
+            return raytrig.value_and_slope(self.K.m64, self.trig, self.K.m64.Float(s),
+                                           self.surf.ray_trig.sinusoids)
+        if self.poly is None:
+            F, _, g, _ = self.point(s, rng)
+            return F, g
+        return raypoly.value_and_slope(self.poly[0], self.K.m64.Float(s))
+
     def _bounds(self, lo, hi, need):
         """Float32 bounds over the segment e + [lo, hi] d where ``need`` (a
         fused expression; a table form's come from :meth:`point_and_bounds`):
@@ -1492,7 +1504,7 @@ def _refine(ev: _Evaluator, lane: _Lane, max_it) -> _Lane:
 
     def body(outcome, t, t_lo, t_hi, evals, iters):
         refining = outcome == BRACKET
-        F, _, g, _ = ev.point(t, lane.rng)
+        F, g = ev.steer(t, lane.rng)
         same = dr.select(F > 0, 1, dr.select(F < 0, -1, 0)) == lane.s_lo
         r_lo = dr.select(refining & same, t, t_lo)
         r_hi = dr.select(refining & ~same, t, t_hi)

@@ -203,3 +203,27 @@ def test05_clip_keeps_the_first_root(name, steps, rng):
             no_roots += 1
             freed += bool(free)
     assert freed >= 0.1 * no_roots and clipped > 0, (freed, no_roots, clipped)
+
+
+@pytest.mark.parametrize("name", POLYNOMIALS)
+def test06_newton_values(name, rng):
+    """The values Newton's steps take (:func:`raypoly.value_and_slope`,
+    Horner on the coefficients): F(t) within W(|t|) plus Horner's rounding
+    of the exact F(t), and F'(t) within 1e-9 of the scale of its terms.
+    Oracle: the exact polynomial (fractions)."""
+    f = _expr(name)
+    for _ in range(20):
+        e, d, t = rng.normal(size=3), rng.normal(size=3), rng.normal()
+        c, w = raypoly.ray_polynomial(f, list(e), list(d), NUMPY)
+        F, g = raypoly.value_and_slope(c, np.float64(t))
+        ex = _exact(f, e, d)
+        T = Fr(t)
+        Fx = sum(a * T ** k for k, a in enumerate(ex))
+        gx = sum(k * a * T ** (k - 1) for k, a in enumerate(ex) if k)
+        n = len(c) - 1
+        scale = sum(abs(float(a)) * abs(t) ** k for k, a in enumerate(c))
+        W = [4.0 * (n + 1) * 2.0**-53 * abs(ci) + wi for ci, wi in zip(c, w)]
+        assert abs(Fr(float(F)) - Fx) <= Fr(float(raypoly.bound(NUMPY, W, abs(t))
+                                                 + 4 * n * 2.0**-53 * scale))
+        gscale = sum(k * abs(float(a)) * abs(t) ** (k - 1) for k, a in enumerate(c) if k)
+        assert abs(float(g) - float(gx)) <= 1e-9 * gscale

@@ -189,3 +189,31 @@ def test03_gyroid_search_against_a_scan(rng):
     assert np.all(np.sign(a) * np.sign(b) <= 0), "a hit without a sign change about it"
     assert np.all(np.isfinite(first[h])), "a hit where the scan finds no root"
     assert hit.sum() > 1000 and miss.sum() > 100, (hit.sum(), miss.sum())
+
+
+@pytest.mark.parametrize("name", ["gyroid", "schwarz_p", "schwarz_d"])
+def test04_newton_values(name, rng):
+    """The values Newton's steps take (:func:`raytrig.value_and_slope`,
+    float64): F(t) and F'(t) within 1e-12 of the exact ones, relative to
+    the sum of the amplitudes (and times the frequencies). Oracle: f and g
+    in 40-digit decimal arithmetic at the float64 ray's exact values."""
+    f = {"gyroid": LIBRARY["gyroid"]().expr, "schwarz_p": lgshape.parse(SCHWARZ_P),
+         "schwarz_d": lgshape.parse(SCHWARZ_D)}[name]
+    g, _ = ray_derivatives(f)
+    T = raytrig.trig_sum(f)
+    n = 30
+    e = rng.uniform(-1.5, 1.5, (n, 3))
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t = rng.uniform(-2, 2, n)
+    R = raytrig.ray_sinusoids(T, list(e.T), list(d.T), NUMPY)
+    F, G = raytrig.value_and_slope(NUMPY, R, t, T.sinusoids)
+    amp = np.broadcast_to(sum(np.abs(A) for A in R.A), (n,))
+    amp1 = np.broadcast_to(sum(np.abs(A * w) for A, w in zip(R.A, R.omega)), (n,))
+    for i in range(n):
+        E, D = [Dec(float(v)) for v in e[i]], [Dec(float(v)) for v in d[i]]
+        tt = Dec(float(t[i]))
+        env = {v: E[a] + tt * D[a] for a, v in enumerate("xyz")}
+        env.update({"d" + v: D[a] for a, v in enumerate("xyz")})
+        assert abs(float(_decimal(f, env)) - F[i]) <= 1e-12 * amp[i]
+        assert abs(float(_decimal(g, env)) - G[i]) <= 1e-12 * amp1[i]

@@ -149,6 +149,16 @@ def shift(m, c, w, t):
     return cs, W
 
 
+def value_and_slope(c, t):
+    """F(t) and F'(t) from the coefficients (Horner, no error bounds: for
+    Newton's steps)."""
+    F, g = c[-1], 0.0 * t
+    for ck in c[-2::-1]:
+        g = g * t + F
+        F = F * t + ck
+    return F, g
+
+
 def bound(m, W, y, derivative=False):
     """W(y) (or W'(y)) for y >= 0, rounded up: positive terms, Horner's
     roundings within 2 n u of the sum."""

@@ -250,3 +250,25 @@ def forms(seg, R: RaySinusoids, t, sinusoids):
     Rf = (R.M3 * r3 * (1.0 / 6.0) + eF + E[1] * r + 0.5 * E[2] * r2) * up
     Rg = (R.M4 * r3 * (1.0 / 6.0) + E[1] + E[2] * r + 0.5 * E[3] * r2) * up
     return Quad(F, D[1], 0.5 * D[2], Rf), Quad(D[1], D[2], 0.5 * D[3], Rg), F, eF
+
+
+def value_and_slope(m, R: RaySinusoids, t, sinusoids):
+    """F(t) and F'(t) in m's precision (float64 for Newton's steps), no
+    error bounds: one sine and cosine per argument, the sinusoids' by angle
+    addition."""
+    sc = [m.sincos(a + b * t) for a, b in zip(R.a, R.b)]
+    F, g = R.C + 0.0 * t, 0.0 * t
+    for A, omega, k in zip(R.A, R.omega, sinusoids):
+        sn = cs = None
+        for sg, i in k.args:
+            si, ci = sc[i]
+            if sg < 0:
+                si = -si
+            if sn is None:
+                sn, cs = si, ci
+            else:
+                sn, cs = sn * ci + cs * si, cs * ci - sn * si
+        v, dv = (sn, cs) if k.trig == "sin" else (cs, -sn)
+        F = F + A * v
+        g = g + A * omega * dv
+    return F, g
