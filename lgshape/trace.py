@@ -1279,8 +1279,13 @@ def _clip_polynomial(ev: _Evaluator, lane: _Lane, active):
     import drjit as dr
     Float = ev.K.m.Float
     c, w = ev.poly
-    free, first = raypoly.clip_first_root(ev.K.m64, c, w, ev.K.m64.Float(ev.rays.span),
-                                          steps=POLY_CLIP_STEPS)
+    m64 = ev.K.m64
+
+    def clip(span):           # (a branch: packets of rays that miss the box skip it)
+        return raypoly.clip_first_root(m64, c, w, span, steps=POLY_CLIP_STEPS)
+    free, first = dr.if_stmt(args=(m64.Float(ev.rays.span),), cond=active, true_fn=clip,
+                             false_fn=lambda span: (dr.mask_t(span)(False), span),
+                             label="lgshape_poly_clip")
     first = Float(first)
     first = dr.maximum(first - dr.abs(first) * 2.0**-22, 0.0)    # float32, rounded down
     free = active & free
