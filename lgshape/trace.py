@@ -1167,7 +1167,10 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
     return RayResult(Float(t64), hit, lane.evals, lane.iters, capped, lane.unres & hit, t64)
 
 
-#: Left Bezier-clipping steps before the walk, for a polynomial f.
+#: Bezier-clipping steps (from both ends) before the walk, for a
+#: polynomial f. Measured: one pays on every kind of ray (polynomial
+#: surfaces 1.0-1.23x, torus shadow rays 1.97x; chmutov6 camera 0.95x);
+#: two or three help incoherent rays and cost shadow and camera rays more.
 POLY_CLIP_STEPS = 1
 
 # What a lane does in one iteration of the search loop (``_Lane.mode``).
@@ -1219,11 +1222,13 @@ class _Lane:
 
 
 def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
-    """The loop over the occupied cells a ray crosses, nearest first (for a
-    quadric, after :func:`_clip_quadric`). One iteration: :func:`_walk` to
-    the next cell where a lane needs one, one evaluation (the interval test
-    of the current interval, or a point), and :func:`_step`, the search's
-    decision. Ends with a hit, a bracket to refine, no root or the cap."""
+    """The loop over the occupied cells a ray crosses, nearest first: after
+    a clip (a quadric's, :func:`_clip_quadric`, or a polynomial's,
+    :func:`_clip_polynomial`) and the first :func:`_walk`. One iteration:
+    :func:`_walk` to the next cell where a lane needs one, one evaluation
+    (the interval test of the current interval, or a point), and
+    :func:`_step`, the search's decision. Ends with a hit, a bracket to
+    refine, no root or the cap."""
     import drjit as dr
     walker = gridmod.Walker(ev.K.grid, ev.rays.g_org, ev.rays.d32, ev.rays.span,
                              rows_up=ev.K.tables.up if ev.tabled else None,
@@ -1235,14 +1240,15 @@ def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
         _step(ev, lane, any_hit, max_it)
         return lane.astuple()
     lane = _Lane.start(ev, active)
+    # Clip, then the first walk before the loop: a ray that meets no
+    # occupied cell ends there, and a packet of such rays never runs the
+    # loop's body. (Not after a quadric's clip, which settles most rays:
+    # the sphere was 0.88x with it.)
     if ev.mode == "interval" and ev.surf.quadric:
         _clip_quadric(ev, lane, active, any_hit)
     else:
         if ev.poly is not None and POLY_CLIP_STEPS > 0:
             _clip_polynomial(ev, lane, active)
-        # the first walk before the loop: a ray that meets no occupied cell
-        # ends here, and a packet of such rays never runs the loop's body
-        # (after a quadric's clip, few rays walk: 0.88x there)
         _walk(ev, walker, lane)
     out = dr.while_loop(state=lane.astuple(),
                         cond=lambda mode, *_: mode != END, body=body, label="lgshape_search")

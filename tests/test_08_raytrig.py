@@ -94,6 +94,20 @@ def test01_recognised():
     assert lgshape.Surface(LIBRARY["gyroid"]()).ray_trig is not None
 
 
+def _random_rays(name, n, rng):
+    """f, g = dF/dt, f's TrigSum and n random rays (e in the box, unit d,
+    t in [-2, 2]) with their sinusoids (float64)."""
+    f = {"gyroid": LIBRARY["gyroid"]().expr, "schwarz_p": lgshape.parse(SCHWARZ_P),
+         "schwarz_d": lgshape.parse(SCHWARZ_D)}[name]
+    g, _ = ray_derivatives(f)
+    T = raytrig.trig_sum(f)
+    e = rng.uniform(-1.5, 1.5, (n, 3))
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    t = rng.uniform(-2, 2, n)
+    return f, g, T, e, d, t, raytrig.ray_sinusoids(T, list(e.T), list(d.T), NUMPY)
+
+
 @pytest.mark.parametrize("name", ["gyroid", "schwarz_p", "schwarz_d"])
 def test02_forms_enclose_the_exact_values(name, rng):
     """On random rays (float64), at random t and half widths r from 1e-6
@@ -101,17 +115,9 @@ def test02_forms_enclose_the_exact_values(name, rng):
     and g at 17 points of [t - r, t + r] (ends included) inside F's and
     g's forms (c0 + c1 s + c2 s^2 within R, evaluated exactly). The bounds
     are not vacuous: the largest error reaches 1e-3 of its bound."""
-    f = {"gyroid": LIBRARY["gyroid"]().expr, "schwarz_p": lgshape.parse(SCHWARZ_P),
-         "schwarz_d": lgshape.parse(SCHWARZ_D)}[name]
-    g, _ = ray_derivatives(f)
-    T = raytrig.trig_sum(f)
     n = 40
-    e = rng.uniform(-1.5, 1.5, (n, 3))
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    t = rng.uniform(-2, 2, n)
+    f, g, T, e, d, t, R = _random_rays(name, n, rng)
     r = 10.0 ** rng.uniform(-6, np.log10(0.3), n)
-    R = raytrig.ray_sinusoids(T, list(e.T), list(d.T), NUMPY)
     seg = Segment(NUMPY, r)
     Qf, Qg, F, eF = raytrig.forms(seg, R, t, T.sinusoids)
     worst = 0.0
@@ -197,16 +203,8 @@ def test04_newton_values(name, rng):
     float64): F(t) and F'(t) within 1e-12 of the exact ones, relative to
     the sum of the amplitudes (and times the frequencies). Oracle: f and g
     in 40-digit decimal arithmetic at the float64 ray's exact values."""
-    f = {"gyroid": LIBRARY["gyroid"]().expr, "schwarz_p": lgshape.parse(SCHWARZ_P),
-         "schwarz_d": lgshape.parse(SCHWARZ_D)}[name]
-    g, _ = ray_derivatives(f)
-    T = raytrig.trig_sum(f)
     n = 30
-    e = rng.uniform(-1.5, 1.5, (n, 3))
-    d = rng.normal(size=(n, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    t = rng.uniform(-2, 2, n)
-    R = raytrig.ray_sinusoids(T, list(e.T), list(d.T), NUMPY)
+    f, g, T, e, d, t, R = _random_rays(name, n, rng)
     F, G = raytrig.value_and_slope(NUMPY, R, t, T.sinusoids)
     amp = np.broadcast_to(sum(np.abs(A) for A in R.A), (n,))
     amp1 = np.broadcast_to(sum(np.abs(A * w) for A, w in zip(R.A, R.omega)), (n,))

@@ -282,7 +282,10 @@ def _clip_from(m, b, E, n):
     beta0 = sg * b[0] - E
     slope = None
     for j in range(1, n + 1):
-        v = (sg * b[j] - E - beta0) * (n / j)
+        # (beta_j - beta_0) n / j, lowered by its roundings (the two
+        # differences may cancel: their errors are relative to the terms)
+        v = (sg * b[j] - E - beta0) * (n / j) \
+            - (4.0 * n / j) * m.u * (m.abs(b[j]) + E + beta0)
         slope = v if slope is None else m.minimum(slope, v)
     theta = m.select(slope >= 0, 2.0, beta0 / m.maximum(-slope, 1e-300))
     return m.select((beta0 > 0) & (theta == theta), m.minimum(theta, 2.0), 0.0)
