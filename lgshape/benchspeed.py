@@ -367,7 +367,7 @@ def bench_surface(name, cfg: SpeedConfig, log, keep_mesh=False):
                                                     "shape": mitsuba_mesh(*mesh)})
     mesh_build = time.perf_counter() - t0
     mesh_extra = {"triangles": 0 if mesh is None else int(len(mesh[1]))}
-    mesh_setting = f"{cfg.mesh_res}^3 marching cubes, Embree"
+    mesh_setting = f"{cfg.mesh_res}^3 marching cubes, {_mesh_tracer(mi.variant())}"
     log(f"speed {name}: lgshape build {lg_build:.2f} s, global L {L:.4g}, mesh "
         f"{mesh_extra['triangles']} triangles in {mesh_build:.1f} s")
 
@@ -576,7 +576,7 @@ def bench_compile(cfg: SpeedConfig, log, variant=VARIANT):
             rec[key] = r
             log(f"first-image latency, {key} cache: first render {r['first_s']:.2f} s, second "
                 f"{r['second_s']:.3f} s: compile {r['compile_s']:.2f} s ({r['kernels_compiled']} "
-                f"of {r['kernels']} kernels compiled, LLVM {r['backend_s']:.2f} s; "
+                f"of {r['kernels']} kernels compiled, {_backend(variant)} {r['backend_s']:.2f} s; "
                 f"{r['cache_files']} cache files; process {wall:.1f} s)")
     return rec
 
@@ -624,6 +624,15 @@ def run(log=None, quick=False, surfaces=None, cornell=True, compile_latency=True
 
 # ---- Chart and report -----------------------------------------------------------
 
+def _mesh_tracer(variant):
+    """Mitsuba's ray tracer for meshes on a variant: OptiX on CUDA, else Embree."""
+    return "OptiX" if variant.startswith("cuda") else "Embree"
+
+
+def _backend(variant):
+    return "CUDA" if variant.startswith("cuda") else "LLVM"
+
+
 def chart(results, path):
     """Ratio bars (log scale) per surface, one panel per ray kind, with the
     target lines; a last panel for the cornell render ratio."""
@@ -644,7 +653,8 @@ def chart(results, path):
         by = {r["surface"]: r for r in rows if r["kind"] == kind}
         for k, (key, colour, label) in enumerate((
                 ("ratio_sphere", "tab:blue", "sphere tracer time / lgshape's"),
-                ("ratio_mesh", "tab:brown", "mesh (Embree) time / lgshape's"))):
+                ("ratio_mesh", "tab:brown",
+                 f"mesh ({_mesh_tracer(results['meta']['variant'])}) time / lgshape's"))):
             h = [by.get(s, {}).get(key) or np.nan for s in surfaces]
             ax.bar(x + (k - 0.5) * 0.38, h, 0.38, color=colour, label=label)
             for i, s in enumerate(surfaces):      # each bar's target
@@ -699,7 +709,8 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
     L.append(f"Rays per second of lgshape (`lgshape.Surface(spec)`, default settings) against "
              f"sphere tracing (valid global Lipschitz bound L of interval arithmetic, eps = "
              f"{meta['st_eps_diag']:g} box diagonals) and a {cfg['mesh_res']}^3 marching-cubes "
-             "mesh of f / |grad f| traced by Mitsuba's Embree, all in one process and run "
+             f"mesh of f / |grad f| traced by Mitsuba's {_mesh_tracer(meta['variant'])}, all in "
+             "one process and run "
              f"(`{meta['variant']}`, {meta['machine']['nproc']} cores, load average "
              f"{meta['loadavg_start']} at the start and {meta.get('loadavg_end', '?')} at the "
              "end: the cores are shared, so times are noisy). Rays: `camera`, "
@@ -797,11 +808,13 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
                  f"{k['spp']} spp, in a subprocess with HOME set to a fresh temporary folder "
                  "(Dr.Jit's kernel cache, `$HOME/.drjit`, starts empty): the first `mi.render` "
                  "minus a second identical render in the same process is the kernel compile "
-                 "time (`LLVM compile s`: the backend time of the kernels compiled, from Dr.Jit's "
+                 f"time (`{_backend(meta['variant'])} compile s`: the backend time of the kernels "
+                 "compiled, from Dr.Jit's "
                  "kernel history). Two more subprocesses with the same HOME repeat it with the "
                  "kernels cached by the earlier ones (kernels reused across runs).\n")
         L.append("| kernel cache | import s | scene load s | first render s | second render s | "
-                 "compile s (first - second) | kernels compiled / launched | LLVM compile s | "
+                 "compile s (first - second) | kernels compiled / launched | "
+                 f"{_backend(meta['variant'])} compile s | "
                  "cache files after |")
         L.append("|---|---|---|---|---|---|---|---|---|")
         for key in PROBES:
