@@ -139,14 +139,17 @@ def shift(m, c, w, t):
     coefficients by |t|, at x, is its value at |t| + x. So F(t) = c'_0 within
     W(|t|), and the errors of a form over |s| <= r are within W(|t| + r)."""
     n = len(c) - 1
-    u = m.u
     cs = list(c)
     for i in range(n):
         for k in range(n - 1, i - 1, -1):
             cs[k] = t * cs[k + 1] + cs[k]
-    g = 4.0 * (n + 1) * u
-    W = [g * m.abs(ci) + wi for ci, wi in zip(c, w)]
-    return cs, W
+    return cs, _shift_bound(m, c, w)
+
+
+def _shift_bound(m, c, w):
+    """:func:`shift`'s W (the same for any t)."""
+    g = 4.0 * len(c) * m.u
+    return [g * m.abs(ci) + wi for ci, wi in zip(c, w)]
 
 
 def value_and_slope(c, t):
@@ -213,7 +216,7 @@ def _bernstein_weights(n: int):
     return [[math.comb(j, k) / math.comb(n, k) for k in range(j + 1)] for j in range(n + 1)]
 
 
-def clip_first_root(m, c, w, span, steps: int = 3):
+def clip_first_root(m, c, w, span, steps: int = 1):
     """Where the first root of F on [0, span] can be, from the convex hull
     of F's Bernstein coefficients (Bezier clipping from both ends, ``steps``
     times): (free, first), float64. ``free``: F has no root in [0, span];
@@ -239,8 +242,7 @@ def clip_first_root(m, c, w, span, steps: int = 3):
     free = zero != zero                                  # all False
     for step in range(steps):
         # (about a = 0 at first: the coefficients as they are)
-        cs, W = (c, [4.0 * (n + 1) * u * m.abs(ci) + wi for ci, wi in zip(c, w)]) \
-            if step == 0 else shift(m, c, w, a)
+        cs, W = (c, _shift_bound(m, c, w)) if step == 0 else shift(m, c, w, a)
         d, hk = [], 1.0 + zero
         for k in range(n + 1):
             d.append(cs[k] * hk)

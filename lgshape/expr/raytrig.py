@@ -207,6 +207,24 @@ def ray_sinusoids(T: TrigSum, e, d, m) -> RaySinusoids:
     return out
 
 
+def _phase_sincos(k: Sinusoid, sc, clamp=None):
+    """Sine and cosine of sinusoid k's phase (sum of sign_i phi_i) from
+    each argument's (``sc``), by angle addition; ``clamp``: applied to an
+    addition's result before it is a part of the next one."""
+    sn = cs = None
+    for j, (sg, i) in enumerate(k.args):
+        si, ci = sc[i]
+        if sg < 0:
+            si = -si
+        if j == 0:
+            sn, cs = si, ci
+            continue
+        if clamp is not None and j >= 2:
+            sn, cs = clamp(sn), clamp(cs)
+        sn, cs = sn * ci + cs * si, cs * ci - sn * si
+    return sn, cs
+
+
 def forms(seg, R: RaySinusoids, t, sinusoids):
     """F's and F''s quadratic forms over |s| <= seg.r about t (float64),
     and F(t) with its error bound: (Qf, Qg, F, eF). ``sinusoids``: the
@@ -225,17 +243,7 @@ def forms(seg, R: RaySinusoids, t, sinusoids):
     sc = [tuple(clamp(v) for v in m.sincos32(a + b * t)) for a, b in zip(R.a, R.b)]
     D = [None] * 4
     for A, omega, k in zip(R.A, R.omega, sinusoids):
-        sn, cs = None, None
-        for j, (sg, i) in enumerate(k.args):
-            si, ci = sc[i]
-            if sg < 0:
-                si = -si
-            if j == 0:
-                sn, cs = si, ci
-                continue
-            if j >= 2:          # an angle addition's result, as a part
-                sn, cs = clamp(sn), clamp(cs)
-            sn, cs = sn * ci + cs * si, cs * ci - sn * si
+        sn, cs = _phase_sincos(k, sc, clamp)
         v = (sn, cs, -sn, -cs) if k.trig == "sin" else (cs, -sn, -cs, sn)
         pw = A
         for j in range(4):
@@ -259,15 +267,7 @@ def value_and_slope(m, R: RaySinusoids, t, sinusoids):
     sc = [m.sincos(a + b * t) for a, b in zip(R.a, R.b)]
     F, g = R.C + 0.0 * t, 0.0 * t
     for A, omega, k in zip(R.A, R.omega, sinusoids):
-        sn = cs = None
-        for sg, i in k.args:
-            si, ci = sc[i]
-            if sg < 0:
-                si = -si
-            if sn is None:
-                sn, cs = si, ci
-            else:
-                sn, cs = sn * ci + cs * si, cs * ci - sn * si
+        sn, cs = _phase_sincos(k, sc)
         v, dv = (sn, cs) if k.trig == "sin" else (cs, -sn)
         F = F + A * v
         g = g + A * omega * dv
