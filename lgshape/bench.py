@@ -402,6 +402,48 @@ def timed(runner: Runner, repeats: int, min_sample: float = 0.0):
     return runner.read(out), float(np.median(samples))
 
 
+def timed_together(runners: dict, repeats: int, min_sample: float = 0.0):
+    """:func:`timed` for several runners on the same rays, their samples
+    interleaved: after a warm-up and a calibration of each, round k takes
+    one sample of every runner in turn (the order rotating from round to
+    round), so that a change of the shared cores' speed during the
+    measurement weighs on all of them alike. Returns {key: (outputs, median
+    seconds, samples)}: samples[k] is round k's, so the ratio of two
+    runners' samples in the same round is a paired ratio."""
+    import drjit as dr
+
+    def once(runner):
+        out = runner.run()
+        dr.eval(*out)
+        dr.sync_thread()
+        return out
+    keys = list(runners)
+    outs, inner = {}, {}
+    for k in keys:
+        outs[k] = once(runners[k])                    # warm-up (compiles)
+        t0 = time.perf_counter()
+        once(runners[k])                              # calibration, compiled
+        t_one = time.perf_counter() - t0
+        inner[k] = (max(1, math.ceil(min_sample / max(t_one, 1e-6))), t_one)
+    rounds = min(repeats, 3) if any(t > 1.0 for _, t in inner.values()) else repeats
+    samples = {k: [] for k in keys}
+    for r in range(rounds):
+        for j in range(len(keys)):
+            k = keys[(j + r) % len(keys)]
+            t0 = time.perf_counter()
+            for _ in range(inner[k][0]):
+                outs[k] = once(runners[k])
+            samples[k].append((time.perf_counter() - t0) / inner[k][0])
+    return {k: (runners[k].read(outs[k]), float(np.median(samples[k])), samples[k])
+            for k in keys}
+
+
+def paired_ratio(samples_a, samples_b):
+    """The median over rounds of a's time / b's time in the same round
+    (samples of :func:`timed_together`)."""
+    return float(np.median(np.asarray(samples_a) / np.asarray(samples_b)))
+
+
 def _angle_deg(a, b):
     """Angle between the lines of unit vectors a and b; NaN counts 90."""
     c = np.abs(np.sum(a * b, axis=1))

@@ -15,8 +15,10 @@ and three kinds of rays:
   (:func:`light_position`); ``t_max`` is the distance to the light.
 
 Methods, each on the same prepared rays (:class:`lgshape.bench.Rays`) and
-timed by :func:`lgshape.bench.timed` (the median of timed samples after a
-warm-up, each sample repeating the trace for at least ``min_sample`` s):
+timed together by :func:`lgshape.bench.timed_together` (the median of timed
+samples after a warm-up, each sample repeating the trace for at least
+``min_sample`` s; the methods' samples interleaved round by round, and a
+ratio the median of the rounds' paired ratios):
 
 - ``lgshape``: ``lgshape.Surface(spec)`` at its default settings;
   ``.trace(o, d)`` for camera and incoherent rays, ``.occluded(o, d, t_max)``
@@ -317,24 +319,35 @@ def _mean(v):
     return None if v is None or len(v) == 0 else float(np.mean(v))
 
 
-def measure(method: Method, n, cfg: SpeedConfig, ref_hit=None) -> tuple[dict, np.ndarray]:
-    """The record of one method on one ray set, and its hit answers."""
-    from .bench import timed
-    res, seconds = timed(method.runner, cfg.repeats, cfg.min_sample)
-    if method.stats is not None:
-        stats = _read(method.stats())
-        res = {**stats, "hit": res["hit"]}
-    hit = res["hit"].astype(bool)
-    rec = {"setting": method.runner.setting, **method.runner.extra, "seconds": seconds,
-           "mrays_per_s": n / seconds / 1e6, "hit_fraction": float(np.mean(hit)),
-           "evals_per_ray": _mean(res.get("evals")),
-           "iterations_per_ray": _mean(res.get("iterations")),
-           "capped": None if res.get("capped") is None else int(np.sum(res["capped"]))}
-    if method.runner.build_s:
-        rec["build_s"] = method.runner.build_s
-    if ref_hit is not None:
-        rec["agree"] = float(np.mean(hit == ref_hit))
-    return rec, hit
+def measure(methods: dict, n, cfg: SpeedConfig) -> dict:
+    """The records of the methods on one ray set ({key: Method}, the first
+    lgshape), timed together (:func:`lgshape.bench.timed_together`: their
+    samples interleaved round by round), with their hit answers' agreement
+    with the first's."""
+    from .bench import timed_together
+    timed = timed_together({k: m.runner for k, m in methods.items()}, cfg.repeats,
+                           cfg.min_sample)
+    recs, ref_hit = {}, None
+    for key, method in methods.items():
+        res, seconds, samples = timed[key]
+        if method.stats is not None:
+            stats = _read(method.stats())
+            res = {**stats, "hit": res["hit"]}
+        hit = res["hit"].astype(bool)
+        rec = {"setting": method.runner.setting, **method.runner.extra, "seconds": seconds,
+               "samples": samples, "mrays_per_s": n / seconds / 1e6,
+               "hit_fraction": float(np.mean(hit)),
+               "evals_per_ray": _mean(res.get("evals")),
+               "iterations_per_ray": _mean(res.get("iterations")),
+               "capped": None if res.get("capped") is None else int(np.sum(res["capped"]))}
+        if method.runner.build_s:
+            rec["build_s"] = method.runner.build_s
+        if ref_hit is None:
+            ref_hit = hit
+        else:
+            rec["agree"] = float(np.mean(hit == ref_hit))
+        recs[key] = rec
+    return recs
 
 
 def sphere_target(surface: str) -> float:
@@ -342,8 +355,13 @@ def sphere_target(surface: str) -> float:
 
 
 def _ratio(other, lg):
+    """The other method's time over lgshape's: the median of the rounds'
+    paired ratios (both timed in the same rounds)."""
+    from .bench import paired_ratio
     if not other or not lg or not other.get("seconds") or not lg.get("seconds"):
         return None
+    if other.get("samples") and lg.get("samples"):
+        return paired_ratio(other["samples"], lg["samples"])
     return other["seconds"] / lg["seconds"]
 
 
@@ -391,14 +409,10 @@ def bench_surface(name, cfg: SpeedConfig, log, keep_mesh=False):
                    "sphere_trace": sphere_method(plain, L, rays, shadow),
                    "mesh": None if scene is None else mesh_method(
                        scene, rays, shadow, mesh_setting, mesh_build, mesh_extra)}
-        lg_hit = None
-        for key, method in methods.items():
-            if method is None or n == 0:
-                row[key] = None
-                continue
-            row[key], hit = measure(method, n, cfg, lg_hit)
-            if key == "lgshape":
-                lg_hit = hit
+        present = {k: m for k, m in methods.items() if m is not None and n > 0}
+        row.update({k: None for k in methods})
+        if present:
+            row.update(measure(present, n, cfg))
         row["ratio_sphere"] = _ratio(row["sphere_trace"], row["lgshape"])
         row["ratio_mesh"] = _ratio(row["mesh"], row["lgshape"])
         row["target_sphere"], row["target_mesh"] = sphere_target(name), TARGET_MESH
@@ -726,7 +740,10 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
              "their Python code again); the mesh's queries are calls into Mitsuba's C++. "
              "A time is the median of "
              f"{cfg['repeats']} samples after a warm-up, each sample repeating the trace for at "
-             f"least {cfg['min_sample']} s. Ratio = the other method's time / lgshape's (above "
+             f"least {cfg['min_sample']} s; the three methods' samples are interleaved (round k "
+             "takes one sample of each, in an order that rotates), so that a change in the "
+             "shared cores' speed weighs on all of them alike. Ratio = the other method's time "
+             "/ lgshape's, the median over the rounds of the ratio within a round (above "
              f"1: lgshape faster). Targets: at least {TARGET_SPHERE:g}x the sphere tracer "
              f"({TARGET_SPHERE_ON_SPHERE:g}x on `sphere`), at least {TARGET_MESH:g}x the mesh. "
              "evals, iterations: per ray (lgshape: point and interval evaluations of f, and "

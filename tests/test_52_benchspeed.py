@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import lgshape
+from conftest import JIT
 from lgshape import benchspeed as S
 from lgshape.surfaces import sphere
 
@@ -53,6 +54,8 @@ def test01_quick_run_records(quick):
                         "iterations_per_ray", "capped"):
                 assert key in rec, (r["surface"], r["kind"], m, key)
             assert rec["seconds"] > 0 and math.isfinite(rec["mrays_per_s"])
+            assert len(rec["samples"]) == S.QUICK.repeats
+            assert rec["seconds"] == pytest.approx(float(np.median(rec["samples"])))
             if m != "lgshape":
                 assert 0.0 <= rec["agree"] <= 1.0
         lg = r["lgshape"]
@@ -68,6 +71,9 @@ def test01_quick_run_records(quick):
             assert r[key] is not None and 0 < r[key] < math.inf
         assert r["target_sphere"] == (1.0 if r["surface"] == "sphere" else 2.0)
         assert r["target_mesh"] == 1.0
+        # a ratio: the median of the rounds' paired ratios
+        assert r["ratio_mesh"] == pytest.approx(float(np.median(
+            np.divide(r["mesh"]["samples"], lg["samples"]))))
         assert r["met_sphere"] == (r["ratio_sphere"] >= r["target_sphere"])
         assert r["met_mesh"] == (r["ratio_mesh"] >= r["target_mesh"])
     # the camera rays are res^2; shadow rays start where the camera rays hit
@@ -80,6 +86,26 @@ def test01_quick_run_records(quick):
         # the guaranteed tracer and the mesh see the same picture, up to the
         # mesh's approximation at the silhouettes
         assert by["camera"]["mesh"]["agree"] > 0.97
+
+
+def test07_timed_together_interleaves_rounds():
+    """Oracle: the order of the runners' calls, recorded by the runners; the
+    paired ratio by hand (median of per-round quotients)."""
+    from lgshape import bench
+    calls = []
+
+    def runner(key):
+        def run():
+            calls.append(key)
+            return (JIT.Float([1.0]),)
+        return bench.Runner(key, "", run, lambda out: key, lambda t: None, 0, 0.0)
+    res = bench.timed_together({k: runner(k) for k in "abc"}, repeats=4)
+    # warm-up and calibration of each, then rounds in rotated order
+    assert calls == list("aabbcc") + list("abc") + list("bca") + list("cab") + list("abc")
+    for k in "abc":
+        out, med, samples = res[k]
+        assert out == k and len(samples) == 4 and med == float(np.median(samples))
+    assert bench.paired_ratio([2.0, 9.0, 3.0], [1.0, 3.0, 3.0]) == 2.0
 
 
 def test02_quick_run_render_and_latency(quick):
