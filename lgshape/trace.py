@@ -1158,7 +1158,8 @@ def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
     ev = _Evaluator(surf, K, rays)
     max_it = surf.max_iterations
 
-    lane = _locate(ev, active, any_hit, max_it)
+    walker, lane = _enter(ev, active, any_hit)
+    lane = _locate(ev, walker, lane, any_hit, max_it)
     if not any_hit:
         lane = _refine(ev, lane, max_it)
     capped = lane.outcome == CAPPED
@@ -1221,24 +1222,14 @@ class _Lane:
                    tuple((z(UInt32), z(UInt32)) for _ in (K.tables.groups if ev.tabled else ())))
 
 
-def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
-    """The loop over the occupied cells a ray crosses, nearest first: after
-    a clip (a quadric's, :func:`_clip_quadric`, or a polynomial's,
-    :func:`_clip_polynomial`) and the first :func:`_walk`. One iteration:
-    :func:`_walk` to the next cell where a lane needs one, one evaluation
-    (the interval test of the current interval, or a point), and
-    :func:`_step`, the search's decision. Ends with a hit, a bracket to
-    refine, no root or the cap."""
-    import drjit as dr
+def _enter(ev: _Evaluator, active, any_hit):
+    """The rays' start: a clip (a quadric's, :func:`_clip_quadric`, or a
+    polynomial's, :func:`_clip_polynomial`) and the first :func:`_walk`.
+    Returns (walker, lane); lanes whose mode is not END go on to
+    :func:`_locate`."""
     walker = gridmod.Walker(ev.K.grid, ev.rays.g_org, ev.rays.d32, ev.rays.span,
-                             rows_up=ev.K.tables.up if ev.tabled else None,
-                             entering=ev.rays.entering)
-
-    def body(*state):
-        lane = _Lane(*state)
-        _walk(ev, walker, lane)
-        _step(ev, lane, any_hit, max_it)
-        return lane.astuple()
+                            rows_up=ev.K.tables.up if ev.tabled else None,
+                            entering=ev.rays.entering)
     lane = _Lane.start(ev, active)
     # Clip, then the first walk before the loop: a ray that meets no
     # occupied cell ends there, and a packet of such rays never runs the
@@ -1250,6 +1241,22 @@ def _locate(ev: _Evaluator, active, any_hit, max_it) -> _Lane:
         if ev.poly is not None and POLY_CLIP_STEPS > 0:
             _clip_polynomial(ev, lane, active)
         _walk(ev, walker, lane)
+    return walker, lane
+
+
+def _locate(ev: _Evaluator, walker, lane: _Lane, any_hit, max_it) -> _Lane:
+    """The loop over the occupied cells a ray crosses, nearest first, after
+    :func:`_enter`. One iteration: :func:`_walk` to the next cell where a
+    lane needs one, one evaluation (the interval test of the current
+    interval, or a point), and :func:`_step`, the search's decision. Ends
+    with a hit, a bracket to refine, no root or the cap."""
+    import drjit as dr
+
+    def body(*state):
+        lane = _Lane(*state)
+        _walk(ev, walker, lane)
+        _step(ev, lane, any_hit, max_it)
+        return lane.astuple()
     out = dr.while_loop(state=lane.astuple(),
                         cond=lambda mode, *_: mode != END, body=body, label="lgshape_search")
     return _Lane(*out)
