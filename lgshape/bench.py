@@ -378,28 +378,21 @@ def timed(runner: Runner, repeats: int, min_sample: float = 0.0):
     last ``min_sample`` seconds (so that scheduling jitter on shared cores
     averages out); 3 samples where one trace takes over a second. ``repeats``
     = 0: one run, compilation included."""
-    import drjit as dr
-
-    def once():
-        out = runner.run()
-        dr.eval(*out)
-        dr.sync_thread()
-        return out
-    t0 = time.perf_counter()
-    out = once()
     if repeats == 0:
-        return runner.read(out), time.perf_counter() - t0
-    t0 = time.perf_counter()
-    once()                                            # calibration, compiled
-    t_one = time.perf_counter() - t0
-    inner = max(1, math.ceil(min_sample / max(t_one, 1e-6)))
-    samples = []
-    for _ in range(min(repeats, 3) if t_one > 1.0 else repeats):
         t0 = time.perf_counter()
-        for _ in range(inner):
-            out = once()
-        samples.append((time.perf_counter() - t0) / inner)
-    return runner.read(out), float(np.median(samples))
+        out = _run_once(runner)
+        return runner.read(out), time.perf_counter() - t0
+    res, seconds, _ = timed_together({0: runner}, repeats, min_sample)[0]
+    return res, seconds
+
+
+def _run_once(runner: Runner):
+    """One trace, its outputs evaluated and the backend synchronised."""
+    import drjit as dr
+    out = runner.run()
+    dr.eval(*out)
+    dr.sync_thread()
+    return out
 
 
 def timed_together(runners: dict, repeats: int, min_sample: float = 0.0):
@@ -410,13 +403,7 @@ def timed_together(runners: dict, repeats: int, min_sample: float = 0.0):
     measurement weighs on all of them alike. Returns {key: (outputs, median
     seconds, samples)}: samples[k] is round k's, so the ratio of two
     runners' samples in the same round is a paired ratio."""
-    import drjit as dr
-
-    def once(runner):
-        out = runner.run()
-        dr.eval(*out)
-        dr.sync_thread()
-        return out
+    once = _run_once
     keys = list(runners)
     outs, inner = {}, {}
     for k in keys:
