@@ -356,7 +356,9 @@ def sphere_target(surface: str) -> float:
 
 def _ratio(other, lg):
     """The other method's time over lgshape's: the median of the rounds'
-    paired ratios (both timed in the same rounds)."""
+    paired ratios (both timed in the same rounds); for records without
+    samples (an older run's JSON, reported again), the quotient of their
+    median times."""
     from .bench import paired_ratio
     if not other or not lg or not other.get("seconds") or not lg.get("seconds"):
         return None
