@@ -133,9 +133,38 @@ def test01c_expression_path(name, rng):
     lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
     surf = lgshape.Surface(spec)
     surf.ray_polynomial = False
-    counts = _check(surf, F, degree, *_rays(rng, F, degree, lo, hi),
-                    groups=np.repeat(["outside", "inside", "grazing"], [N_OUT, N_IN, N_GRAZE]))
+    o32, d32 = _rays(rng, F, degree, lo, hi)
+    groups = np.repeat(["outside", "inside", "grazing"], [N_OUT, N_IN, N_GRAZE])
+    res = surf.trace(o32, d32)
+    counts = _check(surf, F, degree, o32, d32, groups=groups, res=res)
     assert counts["by_group"]["grazing"]["simple"] > 5_000, counts
+
+
+@pytest.mark.parametrize("name", ["barth_sextic", "chmutov6"])
+def test01d_point_left_out_where_the_forms_decide(name, rng, monkeypatch):
+    """On the expression path, an interval whose quadratic forms decide it
+    (F's range excludes 0; or g keeps one sign and F's signs at the ends
+    are known, for an f defined everywhere) takes no point value of F
+    (``FORM_DECIDES``). With and without that, on test01's rays: both
+    answers hold under test01's oracle and rules (companion-matrix roots),
+    the hits are the same rays, and the point values left out show in
+    fewer evaluations."""
+    degree, F = FORMULAS[name]
+    spec = lgshape.surfaces.LIBRARY[name]()
+    lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
+    o32, d32 = _rays(rng, F, degree, lo, hi)
+    o32, d32 = o32[::4], d32[::4]
+    res = {}
+    for decides in (False, True):
+        monkeypatch.setattr(lgshape.trace, "FORM_DECIDES", decides)
+        surf = lgshape.Surface(spec)
+        assert surf.total
+        surf.ray_polynomial = False
+        res[decides] = surf.trace(o32, d32)
+        _check(surf, F, degree, o32, d32, None, min_simple=5_000, res=res[decides])
+    assert np.array_equal(np.asarray(res[False].hit), np.asarray(res[True].hit))
+    ev = {k: int(np.asarray(r.evals, np.int64).sum()) for k, r in res.items()}
+    assert ev[True] < 0.9 * ev[False], ev
 
 
 FORMULAS["sphere"] = (2, lambda X, Y, Z: X**2 + Y**2 + Z**2 - 1)
@@ -215,17 +244,18 @@ def _llvm_float():
     return JIT_AD.Float
 
 def _check(surf, F, degree, o32, d32, groups, min_simple=30_000, tangent_max=TANGENT_MAX,
-           roots=None, t_min=0.0):
+           roots=None, t_min=0.0, res=None):
     """The rules of the module docstring (:func:`oracles.check_first_roots`)
     with the companion-matrix roots of F (or ``roots``); at least
     ``min_simple`` simple first roots (the test exercises many), at most
-    ``tangent_max`` x the rays in the near-tangent allowance (None: any).
-    Returns the class counts."""
+    ``tangent_max`` x the rays in the near-tangent allowance (None: any);
+    ``res``: the trace's result, where the caller has it. Returns the class
+    counts."""
     if roots is None:
         o, d = o32.astype(np.float64), d32.astype(np.float64)
         t0, t1 = clip_to_box(o, d, surf.lo, surf.hi, t_min)
         roots = polynomial_roots(F, degree, o, d, t0, t1)
-    counts = check_first_roots(surf, F, o32, d32, roots, groups=groups, t_min=t_min)
+    counts = check_first_roots(surf, F, o32, d32, roots, groups=groups, t_min=t_min, res=res)
     assert counts["simple"] > min_simple, counts
     if tangent_max is not None:
         assert counts["tangent"] <= tangent_max * len(o32), counts

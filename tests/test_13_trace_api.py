@@ -219,3 +219,21 @@ def test09_numpy_rays_follow_the_variant():
     for rays in ((o, d), (Array3f(o.T), d), (o, Array3f(d.T))):
         res = surf.trace(*rays)
         assert type(res.t) is Float and math.isclose(res.t[0], 1.0, rel_tol=1e-6)
+
+
+@pytest.mark.parametrize("f, total", [
+    ("x^4 - 5*x^2 + y^4 - 5*y^2 + z^4 - 5*z^2 + 11.8", True),
+    ("min(x^2 + y^2, 1) - 0.3 + exp(-abs(z)) * sin(x) * cos(y)", True),
+    ("(x^2 + y^2 + z^2) / 2 - max(x, y)", True),
+    ("sqrt(x^2 + y^2 + z^2) - 1", False),
+    ("log(x^2 + 1) - 0.1", False),
+    ("x / (y^2 + 1) - 0.1", False),
+    ("x^-2 - 4", False),
+])
+def test10_total_expressions(f, total):
+    """``Surface.total`` (f defined at every point, so its interval forms
+    alone may prove the Kalra-Barr tests, see trace._Evaluator._decided):
+    True only for f built of ops defined on all reals (a division only by
+    a constant, powers >= 0). Oracle: each expression's ops, by hand."""
+    surf = lgshape.Surface(lgshape.parse(f), ((-1.5,) * 3, (1.5,) * 3))
+    assert surf.total is total
