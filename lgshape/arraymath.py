@@ -50,6 +50,12 @@ class NumpyMath:
     def errstate(self):
         return np.errstate(all="ignore")
 
+    @staticmethod
+    def branch(cond, true_fn, false_fn, label=None):
+        """true_fn()'s outputs where ``cond``, false_fn()'s elsewhere (a
+        tuple of arrays each); numpy evaluates both."""
+        return tuple(np.where(cond, a, b) for a, b in zip(true_fn(), false_fn()))
+
 
 @dataclass(init=False, eq=False)
 class DrJitMath:
@@ -107,6 +113,18 @@ class DrJitMath:
     def errstate(self):
         import contextlib
         return contextlib.nullcontext()
+
+    def branch(self, cond, true_fn, false_fn, label=None):
+        """true_fn()'s outputs where ``cond``, false_fn()'s elsewhere (a
+        tuple of arrays each): a symbolic conditional, whose true branch a
+        SIMD packet (or a GPU warp) runs only where one of its lanes takes
+        it. Both functions read their inputs from the enclosing scope; an
+        array first made inside a branch (a literal such as 0 * x) must not
+        be used after it: make such values before."""
+        dr = self.dr
+        return tuple(dr.if_stmt(args=(), cond=self.dr.mask_t(self.Float)(cond),
+                                true_fn=lambda: tuple(true_fn()),
+                                false_fn=lambda: tuple(false_fn()), label=label))
 
 
 NUMPY = NumpyMath()

@@ -356,3 +356,33 @@ def test09_clamped_kernel_across_its_clamp(rng):
         widths[name] = np.median(hi - lo) / L
     assert widths["g"] < 10, widths
     assert widths["f"] < 2, widths
+
+
+@pytest.mark.parametrize("f", [
+    "min(sqrt(x^2 + y^2 + z^2) - 0.6, max(max(abs(x) - 0.4, abs(y) - 0.9), abs(z) - 0.3))",
+    "0.5 - (1 - min(x^2 + y^2 + z^2, 1))^2 - (1 - min((x - 0.5)^2 + y^2 + z^2, 1))^2",
+    "abs(x * y - z) - 0.1",
+])
+def test12_mixed_cases_in_a_branch(f, rng, monkeypatch):
+    """min, max and abs compute the form of a mixed case (neither side
+    provably wins) in a Dr.Jit branch (``BRANCH_MIXED``): a packet with no
+    mixed lane skips it. Oracle: the same forms computed without the branch
+    (every case for every lane, then selected), which test01's sampled
+    float64 values hold; each f has both kinds of lanes here."""
+    from lgshape.expr import quadratic
+    e = parse(f)
+    o, d, a, b = _segments(rng, ((-1, -1, -1), (1, 1, 1)), 3000)
+    out = {}
+    for branch in (False, True):
+        monkeypatch.setattr(quadratic, "BRANCH_MIXED", branch)
+        m = DrJitMath(Float)
+        O, D = [Float(o[:, i]) for i in range(3)], [Float(d[:, i]) for i in range(3)]
+        seg, env = quad_env(m, O, D, Float(a), Float(b))
+        (q,) = evaluate_quadratic([e], env, seg)
+        out[branch] = [np.asarray(v + 0 * O[0], np.float64) for v in (q.c0, q.c1, q.c2, q.R)]
+    for v0, v1 in zip(out[False], out[True]):
+        assert np.array_equal(v0, v1, equal_nan=True)
+    lo, hi = _ranges([e], o, d, a, b, "drjit32")[0]
+    t = a[:, None] + (b - a)[:, None] * np.linspace(0, 1, SAMPLES)[None]
+    v = _values(e, o, d, t)
+    assert np.all((lo[:, None] <= v) & (v <= hi[:, None]))

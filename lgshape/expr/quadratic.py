@@ -371,6 +371,30 @@ def _smooth(seg: Segment, op: str, a: Quad) -> Quad:
     return Quad(f0, c1, c2, R)
 
 
+#: min, max and abs compute the form of a mixed case (neither side
+#: provably wins) in a branch a packet takes only where one of its lanes
+#: needs it (:func:`_mixed`).
+BRANCH_MIXED = True
+
+
+def _mixed(seg: Segment, cond, form) -> Quad:
+    """form() where ``cond`` (an unknown form elsewhere, which the caller
+    does not use there)."""
+    m = seg.m
+    if not BRANCH_MIXED:
+        return form()
+
+    # (made before the branch: a value first made inside one lives there)
+    z = 0.0 * seg.r
+    unknown = (z, z, z, z + math.inf)
+    out = m.branch(cond, lambda: _astuple(form()), lambda: unknown, label="lgshape_quad_mixed")
+    return Quad(*out)
+
+
+def _astuple(q: Quad):
+    return (q.c0, q.c1, q.c2, q.R)
+
+
 def _node(seg: Segment, n: Expr, args, exact):
     """The form of node n from its arguments' (Quads or plain arrays);
     ``exact``: whether each argument's form is a polynomial's (no op that
@@ -411,19 +435,21 @@ def _node(seg: Segment, n: Expr, args, exact):
                                       m.select(m.isnan(w), math.inf, a.c0 + w)))
         return _select(m, flat, _via_interval(seg, n, ranges), t)
     ranges = [quad_range(seg, a) for a in q]
-    fallback = _via_interval(seg, n, ranges)
     if op in ("min", "max"):
         a_wins = (ranges[0].hi < ranges[1].lo) if op == "min" else (ranges[0].lo > ranges[1].hi)
         b_wins = (ranges[1].hi < ranges[0].lo) if op == "min" else (ranges[1].lo > ranges[0].hi)
-        mixed = _narrower(seg, _chord(seg, op, q[0], q[1]), fallback)
+        mixed = _mixed(seg, ~(a_wins | b_wins), lambda: _narrower(
+            seg, _chord(seg, op, q[0], q[1]), _via_interval(seg, n, ranges)))
         return _select(m, a_wins, q[0], _select(m, b_wins, q[1], mixed))
+    fallback = _via_interval(seg, n, ranges)
     if op in ("sin", "cos", "exp"):
         # the second-order rule unless it is over twice as wide as the
         # interval rule (a form composes better: products keep their
         # correlations)
         return _narrower(seg, _smooth(seg, op, q[0]), fallback)
     if op == "abs":
-        mixed = _narrower(seg, _chord(seg, op, q[0], None), fallback)
+        mixed = _mixed(seg, (ranges[0].lo < 0) & (ranges[0].hi > 0),
+                       lambda: _narrower(seg, _chord(seg, op, q[0], None), fallback))
         return _select(m, ranges[0].lo >= 0, q[0], _select(m, ranges[0].hi <= 0, _neg(q[0]),
                                                             mixed))
     return fallback
