@@ -139,3 +139,28 @@ def test10_min_max_are_balanced_trees():
     assert parse("min(x, y, z, x*y, y*z)") is lgshape.minimum(
         lgshape.minimum(lgshape.minimum(a, b), lgshape.minimum(c, d)), e_)
     assert lgshape.minimum(x, x) is x
+
+
+@pytest.mark.parametrize("f, smaller", [
+    ("1 - 4/9*u^3 + 17/9*u^2 - 22/9*u", True),
+    ("x^4 - 5*x^2 + y^4 - 5*y^2 + z^4 - 5*z^2 + 11.8", False),
+    ("x^4 - 2*x^3 - 5*x^2 + y", True),
+    ("2*(x*y)^3 - (x*y)^2 + 3*(x*y) - sin(z) + 0.5*(x*y)", True),
+    ("x^2 + y^2 + z^2 - 1", False),
+    ("sin(x)*cos(y) + sin(y)*cos(z) + sin(z)*cos(x)", False),
+])
+def test30_horner_form(f, smaller, rng):
+    """lgshape.expr.horner regroups a sum's powers of one subexpression
+    (at least two powers, one >= 2, at most one missing below the highest)
+    and leaves other sums alone. Oracle:
+    the expression as written, evaluated in float64 at random points (the
+    same function: equal to rounding), and the node counts."""
+    from lgshape.expr.horner import horner
+    from lgshape.expr import evaluate
+    e = parse(f.replace("u", "(x^2 + y^2 + z^2)"))
+    h = horner(e)
+    p = rng.uniform(-1.5, 1.5, (3, 2000))
+    env = dict(x=p[0], y=p[1], z=p[2])
+    v, w = evaluate(e, env), evaluate(h, env)
+    assert np.allclose(w, v, rtol=1e-12, atol=1e-12 * np.abs(v).max())
+    assert (h.size() < e.size()) if smaller else (h is e)

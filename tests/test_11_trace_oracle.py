@@ -43,6 +43,7 @@ import numpy as np
 import pytest
 
 import lgshape
+import lgshape.trace
 from lgshape.reference import along, clip_to_box, polynomial_roots
 from oracles import check_first_roots, sphere_roots
 from conftest import JIT_AD
@@ -433,3 +434,45 @@ def test04_occluded_matches_polynomial_roots(name, rng):
     assert not occ[no].any(), f"{int(occ[no].sum())} of {int(no.sum())} rays without a root occluded"
     assert yes.sum() > 5_000 and no.sum() > 5_000 and (~decided).mean() < 0.02, \
         (int(yes.sum()), int(no.sum()), int((~decided).sum()))
+
+
+def _blobs_f(X, Y, Z):
+    """The library blobs' f in float64, from its formula (threshold 0.5
+    less three Wyvill kernels of radius 1, as written in
+    :func:`lgshape.surfaces.blobs`), independent of the DAG."""
+    total = 0.0
+    for c in ((-0.45, 0.0, 0.0), (0.45, 0.0, 0.0), (0.0, 0.55, 0.2)):
+        u = np.minimum((X - c[0])**2 + (Y - c[1])**2 + (Z - c[2])**2, 1.0)
+        total = total + 1 - 4 / 9 * u**3 + 17 / 9 * u**2 - 22 / 9 * u
+    return 0.5 - total
+
+
+def test05_blobs_in_horner_form(rng, monkeypatch):
+    """The expression path takes f's sums of powers in Horner form
+    (``HORNER``; the blobs' cubic kernels): the first hits are the same as
+    with f as written, and both are the first roots of a float64 scan of
+    the formula (4096 steps a ray, bisected), within the refinement
+    tolerance. 96^2 camera rays and 4000 rays from inside the box."""
+    from lgshape.camera import primary_rays
+    from lgshape.reference import first_sign_change
+    spec = lgshape.surfaces.LIBRARY["blobs"]()
+    lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
+    oc, dc = primary_rays(spec.bbox, 96)
+    oi = (lo + (hi - lo) * rng.uniform(0, 1, (4000, 3))).astype(np.float32)
+    di = _unit(rng.normal(size=(4000, 3))).astype(np.float32)
+    o32, d32 = np.concatenate([oc, oi]), np.concatenate([dc, di])
+    o, d = o32.astype(np.float64), d32.astype(np.float64)
+    t0, t1 = clip_to_box(o, d, lo, hi)
+    ref = first_sign_change(_blobs_f, o, d, t0, t1)
+    sizes = {}
+    for h in (False, True):
+        monkeypatch.setattr(lgshape.trace, "HORNER", h)
+        surf = lgshape.Surface(spec)
+        sizes[h] = surf.local_expr.size()
+        res = surf.trace(o32, d32)
+        hit, t64 = np.asarray(res.hit), np.asarray(res.t64)
+        tol = 1e-6 * surf.diagonal / np.linalg.norm(d, axis=1)
+        assert np.array_equal(hit, np.isfinite(ref)), (h, int((hit != np.isfinite(ref)).sum()))
+        assert np.all(np.abs(t64[hit] - ref[hit]) <= 2 * tol[hit]), h
+        assert not np.asarray(res.capped).any()
+    assert sizes[True] < sizes[False]
