@@ -798,11 +798,11 @@ class _Evaluator:
         middle (interval mode; 0 elsewhere), for the start of Newton.
 
         ``want``: the lanes that use the point (its value elsewhere is not
-        read). The point is (F, eF, g, eg, known): ``known`` False on the
-        lanes where it was not evaluated, because F's forms alone decide
-        the interval (:meth:`_decided`; the interval mode on a fused
-        expression), where F is the form's value at s; None where every
-        lane's is."""
+        read). The point is (F, eF, g, eg, decided): ``decided`` (the
+        interval mode on a fused expression; else None), the lanes whose
+        interval F's forms decide alone, with that decision
+        (:meth:`_decided`), where F's point value was not evaluated and F
+        is the form's value at s."""
         K, R = self.K, self.rays
         if self.poly is not None or self.trig is not None:
             return self._poly_point_and_bounds(s, lo, hi, need)
@@ -820,32 +820,38 @@ class _Evaluator:
             c1, c2, c0 = B[4:7]
             B = B[:4] + B[7:]
             flat = need & (c1 == 0)
-            known = want & ~(need & ~flat & self._decided(B)) if FORM_DECIDES else None
+            decided, known = None, None
+            if FORM_DECIDES:
+                lanes, empty, s_lo = self._decided(B)
+                decided = (need & ~flat & lanes, empty, s_lo)
+                known = want & ~decided[0]
             F, eF, g, _ = self.point(s, rng, g_where=flat, where=known)
             if known is not None:
                 F = self.dr.select(known, F, Float64(c0))
-            return (F, eF, self.dr.select(flat, g, Float64(c1)), None, known), B, \
+            return (F, eF, self.dr.select(flat, g, Float64(c1)), None, decided), B, \
                 self.dr.select(flat, 0.0, Float64(c2))
         F, eF, g, eg = self.point(s, rng)
         return (F, eF, g, eg, None), self._bounds(lo, hi, need), 0.0
 
     def _decided(self, B):
-        """The lanes whose interval F's forms decide without F's point
-        value (interval mode; B: the ranges of g's and F's forms, and F's
-        at the two ends): F's range excludes 0 (no root where f is
-        defined), or, for an f defined everywhere (:attr:`Surface.total`:
-        then finite forms mean F is finite on the interval), g keeps one
-        sign and F's signs at the two ends are known (the same: no root;
-        opposite: one, in the whole interval). See :meth:`test`."""
+        """What F's forms decide without F's point value (interval mode;
+        B: the ranges of g's and F's forms, and F's at the two ends):
+        (lanes, empty, s_lo). On ``lanes``, F's range excludes 0 (no root
+        where f is defined), or, for an f defined everywhere
+        (:attr:`Surface.total`: then finite forms mean F is finite on the
+        interval), g keeps one sign and F's signs at the two ends are known:
+        the same, no root; opposite, one root in the whole interval, whose
+        left end has F's sign ``s_lo``. ``empty``: no root."""
         dr = self.dr
         g_lo, g_hi, F_lo, F_hi, Fa_lo, Fa_hi, Fb_lo, Fb_hi = B
-        decided = (F_lo > 0) | (F_hi < 0)
+        excluded = (F_lo > 0) | (F_hi < 0)
+        s_a, s_b = _sign_of(Fa_lo, Fa_hi), _sign_of(Fb_lo, Fb_hi)
+        lanes = excluded
         if self.surf.total:
-            s_a, s_b = _sign_of(Fa_lo, Fa_hi), _sign_of(Fb_lo, Fb_hi)
             monotone = ((g_lo > 0) | (g_hi < 0)) & dr.isfinite(g_lo) & dr.isfinite(g_hi)
-            decided = decided | (monotone & (s_a != 0) & (s_b != 0)
-                                 & dr.isfinite(F_lo) & dr.isfinite(F_hi))
-        return decided
+            lanes = lanes | (monotone & (s_a != 0) & (s_b != 0)
+                             & dr.isfinite(F_lo) & dr.isfinite(F_hi))
+        return lanes, excluded | (s_a == s_b), s_a
 
     def _poly_point_and_bounds(self, s, lo, hi, need):
         """:meth:`point_and_bounds` from the ray's polynomial (its
@@ -906,11 +912,10 @@ class _Evaluator:
             if where is None:
                 F, eF = evaluate_with_error(self.f, env, err, m64)
             else:
-                zero = m64.Float(0)
                 F, eF = self.dr.if_stmt(
                     args=(s,), cond=where,
                     true_fn=lambda s: evaluate_with_error(self.f, env, err, m64),
-                    false_fn=lambda s: (zero + 0.0 * s, zero + 0.0 * s), label="lgshape_point")
+                    false_fn=lambda s: (m64.Float(0), m64.Float(0)), label="lgshape_point")
             if g_where is None:
                 return F, eF, evaluate(self.ge, env, m64), None
             g = self.dr.if_stmt(args=(s,), cond=g_where,
@@ -1025,7 +1030,7 @@ class _Evaluator:
         tm = 0.5 * (Float64(lo) + Float64(hi))
         r = _half_width(lo, hi)
         re = _end_offset(lo, hi)
-        F, eF, g, eg, known = at
+        F, eF, g, eg, decided = at
         local = active & (self.mode != "global")
         S_lo, S_hi, *Fn = (Float64(v) for v in bounds)
         defined = dr.isfinite(F) & dr.isfinite(eF)
@@ -1100,20 +1105,17 @@ class _Evaluator:
             & ((s_a * s_b < 0) | (s_a * s_m < 0) | (s_m * s_b < 0))
         b_lo, b_hi = dr.select(right, tm, Float64(lo)), dr.select(left, tm, Float64(hi))
         b_sign = dr.select(right, s_m, s_a)
-        if known is not None:
+        if decided is not None:
             # lanes without F's point value: F's forms decided the interval
-            # (_decided): no root where F's range excludes 0 or its signs
-            # at the ends agree (g keeps one sign), else one root in the
-            # whole interval, whose left end has F's sign there
-            skip = active & ~known
-            q_a, q_b = _sign_of(Fn[2], Fn[3]), _sign_of(Fn[4], Fn[5])
-            q_empty = (Fn[0] > 0) | (Fn[1] < 0) | (q_a == q_b)
+            # (_Evaluator._decided): no root, or one in the whole interval
+            lanes, q_empty, q_sign = decided
+            skip = active & lanes
             empty = dr.select(skip, q_empty, empty)
             bracket = dr.select(skip, ~q_empty, bracket)
             crossing = dr.select(skip, ~q_empty, crossing)
             b_lo = dr.select(skip, Float64(lo), b_lo)
             b_hi = dr.select(skip, Float64(hi), b_hi)
-            b_sign = dr.select(skip, q_a, b_sign)
+            b_sign = dr.select(skip, q_sign, b_sign)
             s_m = dr.select(skip, 0, s_m)
             evals = evals - dr.select(skip, 1, 0)
         return _Test(

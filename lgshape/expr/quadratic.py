@@ -443,17 +443,17 @@ def _node(seg: Segment, n: Expr, args, exact):
         mixed = _mixed(seg, ~(a_wins | b_wins), lambda: _narrower(
             seg, _chord(seg, op, q[0], q[1]), _via_interval(seg, n, ranges)))
         return _select(m, a_wins, q[0], _select(m, b_wins, q[1], mixed))
+    if op == "abs":
+        mixed = _mixed(seg, (ranges[0].lo < 0) & (ranges[0].hi > 0), lambda: _narrower(
+            seg, _chord(seg, op, q[0], None), _via_interval(seg, n, ranges)))
+        return _select(m, ranges[0].lo >= 0, q[0], _select(m, ranges[0].hi <= 0, _neg(q[0]),
+                                                            mixed))
     fallback = _via_interval(seg, n, ranges)
     if op in ("sin", "cos", "exp"):
         # the second-order rule unless it is over twice as wide as the
         # interval rule (a form composes better: products keep their
         # correlations)
         return _narrower(seg, _smooth(seg, op, q[0]), fallback)
-    if op == "abs":
-        mixed = _mixed(seg, (ranges[0].lo < 0) & (ranges[0].hi > 0),
-                       lambda: _narrower(seg, _chord(seg, op, q[0], None), fallback))
-        return _select(m, ranges[0].lo >= 0, q[0], _select(m, ranges[0].hi <= 0, _neg(q[0]),
-                                                            mixed))
     return fallback
 
 
