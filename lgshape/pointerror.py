@@ -6,7 +6,8 @@ that error for one op: given the computed arguments ``a``, their error bounds
 ``ea`` (absolute) and the computed result ``v``, it returns ``e`` with
 |exact op(exact args) - v| <= e. The bounds are relative to the magnitudes
 actually evaluated (no fixed absolute floor, so k * f has k times the error
-bound of f for any k), and they are evaluated together with the values, so
+bound of f for any k; exp's, whose result may underflow, adds the smallest
+normal number ``m.tiny``), and they are evaluated together with the values, so
 each ray point gets its own bound. Unit roundoff ``m.u`` covers one
 correctly rounded op (+ - * / sqrt, with margin); ``m.eps_t`` covers the
 library's exp, log, sin and cos (64 ulp in float64). The error of computing
@@ -69,9 +70,10 @@ def e_sqrt(m, v, a, ea):
 
 
 def e_exp(m, v, a, ea):
-    # exp(a + ea) - exp(a) = exp(a) (exp(ea) - 1), exp(ea) - 1 <= ea (1 + ea) for ea <= 1
+    # exp(a + ea) - exp(a) = exp(a) (exp(ea) - 1), exp(ea) - 1 <= ea (1 + ea) for ea <= 1;
+    # the smallest normal covers a result that underflows (0 or a subnormal)
     grow = m.select(ea <= 1.0, ea * (1.0 + ea), m.exp(ea))
-    return v * (1.0 + m.eps_t) * grow + m.eps_t * v
+    return v * (1.0 + m.eps_t) * grow + m.eps_t * v + m.tiny
 
 
 def e_log(m, v, a, ea):

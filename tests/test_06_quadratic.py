@@ -386,3 +386,62 @@ def test12_mixed_cases_in_a_branch(f, rng, monkeypatch):
     t = a[:, None] + (b - a)[:, None] * np.linspace(0, 1, SAMPLES)[None]
     v = _values(e, o, d, t)
     assert np.all((lo[:, None] <= v) & (v <= hi[:, None]))
+
+
+
+@pytest.mark.parametrize("f", ["exp(-400 * ((x - 0.3)^2 + y^2 + z^2))",
+                               "0.3 - exp(-400 * ((x - 0.3)^2 + y^2 + z^2))"
+                               " - exp(-60 * (x^2 + (y + 0.4)^2))"])
+def test13_negligible_exp(f, rng, monkeypatch):
+    """exp of an argument whose form stays below EXP_FLOOR (-80) over a
+    segment is the constant form [0, EXP_TINY] (``NEGLIGIBLE_EXP``, in a
+    branch a packet skips), and its point value, where the argument with
+    its error stays below EXP_FLOOR - 1, is 0 within EXP_TINY. Oracles:
+    the forms and point values computed without it (every lane's exp), bit
+    for bit on the other lanes; sampled float64 values of f inside the
+    forms' ranges (test01's rule) and within the point values' error
+    bounds of the float64 value. Narrow Gaussians: most segments of the
+    box see them below the floor, some do not."""
+    from lgshape.expr import ops
+    from lgshape.expr.evaluate import evaluate_with_error
+    e = parse(f)
+    gauss = e if e.op == "exp" else e.args[0].args[1]       # exp(-400 ...)
+    o, d, a, b = _segments(rng, ((-1, -1, -1), (1, 1, 1)), 3000)
+    m, m64 = DrJitMath(Float), DrJitMath(JIT.Float64)
+    O, D = [Float(o[:, i]) for i in range(3)], [Float(d[:, i]) for i in range(3)]
+    tm = 0.5 * (a + b)
+    P = {v: JIT.Float64(o[:, i] + tm * d[:, i]) for i, v in enumerate("xyz")}
+    forms, points = {}, {}
+    for flag in (False, True):
+        monkeypatch.setattr(ops, "NEGLIGIBLE_EXP", flag)
+        seg, env = quad_env(m, O, D, Float(a), Float(b))
+        q, qa = evaluate_quadratic([e, gauss.args[0]], env, seg)
+        forms[flag] = [np.asarray(v + 0 * O[0], np.float64) for v in (q.c0, q.c1, q.c2, q.R)]
+        arg_hi = np.asarray(quad_range(seg, qa).hi + 0 * O[0], np.float64)
+        (v, ev), (va, eva) = evaluate_with_error([e, gauss.args[0]], P, {}, m64)
+        points[flag] = [np.asarray(x + 0 * P["x"], np.float64) for x in (v, ev)]
+        arg_point = np.asarray(va + eva + 0 * P["x"], np.float64)
+    low = arg_hi < ops.EXP_FLOOR
+    assert low.mean() > 0.5 and (~low).any()               # both kinds of lanes
+    if e is gauss:
+        assert np.all(forms[True][0][low] == 0) and np.all(forms[True][1][low] == 0)
+        assert np.all(forms[True][3][low] == np.float32(ops.EXP_TINY))
+    for x, y in zip(forms[False], forms[True]):
+        assert np.array_equal(x[~low], y[~low], equal_nan=True)
+    t = a[:, None] + (b - a)[:, None] * np.linspace(0, 1, SAMPLES)[None]
+    v = _values(e, o, d, t)
+    for flag in (False, True):
+        monkeypatch.setattr(ops, "NEGLIGIBLE_EXP", flag)
+        lo, hi = _ranges([e], o, d, a, b, "drjit32")[0]
+        assert np.all((lo[:, None] <= v) & (v <= hi[:, None])), flag
+    # point values at the middles (the exact value is f at the float64 point)
+    low_p = arg_point < ops.EXP_FLOOR - 1.0
+    assert low_p.mean() > 0.5 and (~low_p).any()
+    ref = _values(e, o, d, tm[:, None])[:, 0]
+    for flag in (False, True):
+        val, err = points[flag]
+        assert np.all(np.abs(val - ref) <= err), flag
+    assert np.array_equal(points[False][0][~low_p], points[True][0][~low_p])
+    assert np.array_equal(points[False][1][~low_p], points[True][1][~low_p])
+    if e is gauss:
+        assert np.all(points[True][0][low_p] == 0)

@@ -476,3 +476,48 @@ def test05_blobs_in_horner_form(rng, monkeypatch):
         assert np.all(np.abs(t64[hit] - ref[hit]) <= tol[hit]), h
         assert not np.asarray(res.capped).any()
     assert sizes[True] < sizes[False]
+
+
+GAUSS_CENTRES = ((-0.5, 0.0, 0.0), (0.5, 0.0, 0.1), (0.0, 0.5, 0.3), (0.1, -0.5, -0.3))
+
+
+def _gauss_f(X, Y, Z):
+    """Blinn's blobby molecules in float64, from the formula: 0.05 less four
+    Gaussians exp(-200 |p - c|^2)."""
+    total = 0.0
+    for c in GAUSS_CENTRES:
+        total = total + np.exp(-200 * ((X - c[0])**2 + (Y - c[1])**2 + (Z - c[2])**2))
+    return 0.05 - total
+
+
+def test06_gaussians_negligible_far_away(rng, monkeypatch):
+    """A sum of narrow Gaussians (Blinn's blobs), searched with and without
+    ``NEGLIGIBLE_EXP`` (an exp whose argument stays below -80 over an
+    interval taken as [0, 1.81e-35]): the same first hits, and both the
+    first roots of a float64 scan of the formula (4096 steps a ray,
+    bisected) within the refinement tolerance. 96^2 camera rays and 4000
+    rays from inside the box."""
+    from lgshape.camera import primary_rays
+    from lgshape.expr import ops
+    from lgshape.reference import first_sign_change
+    text = "0.05 - " + " - ".join(
+        f"exp(-200 * ((x - {c[0]})^2 + (y - {c[1]})^2 + (z - {c[2]})^2))" for c in GAUSS_CENTRES)
+    bbox = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    lo, hi = np.asarray(bbox[0]), np.asarray(bbox[1])
+    oc, dc = primary_rays(bbox, 96)
+    oi = (lo + (hi - lo) * rng.uniform(0, 1, (4000, 3))).astype(np.float32)
+    di = _unit(rng.normal(size=(4000, 3))).astype(np.float32)
+    o32, d32 = np.concatenate([oc, oi]), np.concatenate([dc, di])
+    o, d = o32.astype(np.float64), d32.astype(np.float64)
+    t0, t1 = clip_to_box(o, d, lo, hi)
+    ref = first_sign_change(_gauss_f, o, d, t0, t1)
+    assert 0.02 < np.isfinite(ref).mean() < 0.5
+    for flag in (False, True):
+        monkeypatch.setattr(ops, "NEGLIGIBLE_EXP", flag)
+        surf = lgshape.Surface(text, bbox)
+        res = surf.trace(o32, d32)
+        hit, t64 = np.asarray(res.hit), np.asarray(res.t64)
+        tol = 1e-6 * surf.diagonal / np.linalg.norm(d, axis=1)
+        assert np.array_equal(hit, np.isfinite(ref)), (flag, int((hit != np.isfinite(ref)).sum()))
+        assert np.all(np.abs(t64[hit] - ref[hit]) <= tol[hit]), flag
+        assert not np.asarray(res.capped).any() and not np.asarray(res.unresolved).any()

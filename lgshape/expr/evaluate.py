@@ -10,6 +10,7 @@ from __future__ import annotations
 from .. import interval as iv
 from ..arraymath import math_for
 from .node import Expr, topological
+from . import ops
 from .ops import OPS
 
 
@@ -100,6 +101,18 @@ def evaluate_interval(roots, env: dict, m):
     return out[0] if single else out
 
 
+def _exp_with_error(m, op, a, ea):
+    """exp(a) and its error bound, where some lane's a + ea reaches EXP_FLOOR
+    - 1 (the margin covers the rounding of a + ea); [0, EXP_TINY] elsewhere."""
+    zero = 0.0 * a
+    low = a + ea < ops.EXP_FLOOR - 1.0
+
+    def full():
+        v = op.value(m, a)
+        return v, op.error(m, v, a, ea)
+    return m.branch(~low, full, lambda: (zero, zero + ops.EXP_TINY), label="lgshape_exp_point")
+
+
 def evaluate_with_error(roots, env: dict, env_error: dict, m, safety: bool = True):
     """Point values of ``roots`` with bounds on their rounding error.
 
@@ -127,6 +140,9 @@ def evaluate_with_error(roots, env: dict, env_error: dict, m, safety: bool = Tru
             op = OPS[n.op]
             args = [val[id(a)] for a in n.args]
             errs = [err[id(a)] for a in n.args]
+            if n.op == "exp" and ops.NEGLIGIBLE_EXP:
+                val[id(n)], err[id(n)] = _exp_with_error(m, op, args[0], errs[0])
+                continue
             extra = (n.param,) if n.op == "pow" else ()
             v = op.value(m, *args, *extra)
             val[id(n)] = v

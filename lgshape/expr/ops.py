@@ -97,3 +97,13 @@ FUNCTIONS = {op.name: op.arity for op in _TABLE
 
 #: Named constants of the expression language.
 CONSTANTS = {"pi": math.pi, "e": math.e}
+
+#: exp of an argument below EXP_FLOOR over a segment (or at a point, with
+#: its error) is taken as the constant [0, EXP_TINY] (EXP_TINY >= e^-80 =
+#: 1.80e-35, a normal float32), in a branch that a packet skips where all
+#: its lanes are below: a Gaussian or Blinn blob far from its centre costs
+#: no exp, no chord and no error bound (per-region simplification, decided
+#: on each segment from the argument's form).
+NEGLIGIBLE_EXP = True
+EXP_FLOOR = -80.0
+EXP_TINY = 1.81e-35

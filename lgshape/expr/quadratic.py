@@ -39,6 +39,7 @@ from .. import interval as iv
 from ..arraymath import powi
 from .evaluate import _lookup, constant
 from .node import Expr, topological
+from . import ops
 from .ops import OPS
 
 #: Roundings covered per op, in units of ``m.u`` (the unit roundoff with a
@@ -356,8 +357,14 @@ def _smooth(seg: Segment, op: str, a: Quad) -> Quad:
     if op == "exp":
         f0 = m.exp(a.c0)
         f1 = f2 = f0
-        M3 = f0 * m.exp(D)
-        ef = m.eps_t * f0
+        # max exp over [c0 - D, c0 + D], from the end itself: f0 exp(D)
+        # is 0 where f0 underflows and exp(c0 + D) does not (c0 = -95,
+        # D = 18); the argument rounded up, the library's error added
+        top = a.c0 + D
+        M3 = m.exp(top + m.abs(top) * m.eps) * (1.0 + m.eps_t) + m.tiny
+        # f0 = f1 = f2 within the library's error, or, where exp(c0)
+        # underflows to 0 or a subnormal, within the smallest normal
+        ef = m.eps_t * f0 + m.tiny
     else:
         s, c = m.sin(a.c0), m.cos(a.c0)
         f0, f1, f2 = (s, c, -s) if op == "sin" else (c, -s, -c)
@@ -390,6 +397,21 @@ def _mixed(seg: Segment, cond, form) -> Quad:
     z = 0.0 * seg.r
     unknown = (z, z, z, z + math.inf)
     out = m.branch(cond, lambda: _astuple(form()), lambda: unknown, label="lgshape_quad_mixed")
+    return Quad(*out)
+
+
+def _exp_form(seg: Segment, n: Expr, a: Quad, ranges) -> Quad:
+    """exp's form (:func:`_smooth` or its interval rule), computed in a
+    branch that a packet takes only where one of its lanes' argument
+    reaches :data:`~lgshape.expr.ops.EXP_FLOOR` on the segment; the
+    constant form [0, EXP_TINY] elsewhere."""
+    m = seg.m
+    # (made before the branch: a value first made inside one lives there)
+    z = 0.0 * seg.r
+    low = ranges[0].hi < ops.EXP_FLOOR
+    out = m.branch(~low, lambda: _astuple(_narrower(seg, _smooth(seg, "exp", a),
+                                                    _via_interval(seg, n, ranges))),
+                   lambda: (z, z, z, z + ops.EXP_TINY), label="lgshape_quad_exp")
     return Quad(*out)
 
 
@@ -448,6 +470,8 @@ def _node(seg: Segment, n: Expr, args, exact):
             seg, _chord(seg, op, q[0], None), _via_interval(seg, n, ranges)))
         return _select(m, ranges[0].lo >= 0, q[0], _select(m, ranges[0].hi <= 0, _neg(q[0]),
                                                             mixed))
+    if op == "exp" and ops.NEGLIGIBLE_EXP:
+        return _exp_form(seg, n, q[0], ranges)
     fallback = _via_interval(seg, n, ranges)
     if op in ("sin", "cos", "exp"):
         # the second-order rule unless it is over twice as wide as the
