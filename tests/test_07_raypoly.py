@@ -21,12 +21,14 @@ from lgshape.surfaces import LIBRARY
 
 POLYNOMIALS = ["torus", "tangle", "barth_sextic", "kummer", "chmutov6", "clebsch"]
 WRITTEN = ["x^3 - y*z/3 + 0.1*x^2*y - 1/7", "(x - 0.3)^2 * (y + 1/3)^3 - z^5 / 11 + sqrt(2)*x*y*z",
-           "-(x*y - z)^4 + 2.5"]
+           "-(x*y - z)^4 + 2.5", "(x*y - sqrt(2)*z)^3 / sqrt(2) + x - 1/sqrt(2)"]
 
 
-def _exact(f, e, d):
+def _exact(f, e, d, sqrt_digits=0):
     """F(s) = f(e + s d) exactly: coefficients (fractions), from the exact
-    values of e, d and of the constants (float64)."""
+    values of e, d and of the constants (float64); with ``sqrt_digits``,
+    the square root of a constant to that many decimal digits (rounded
+    down)."""
     val = {}
 
     def mul(a, b):
@@ -42,6 +44,8 @@ def _exact(f, e, d):
             val[id(n)] = [Fr(float(e[a])), Fr(float(d[a]))]
         elif n.op == "const":
             val[id(n)] = [Fr(n.param)]
+        elif n.op == "named":
+            val[id(n)] = [Fr(n.param[1])]
         elif n.op in ("add", "sub"):
             k = 1 if n.op == "add" else -1
             m = max(len(args[0]), len(args[1]))
@@ -59,7 +63,11 @@ def _exact(f, e, d):
         elif n.op == "div":
             assert len(args[1]) == 1
             val[id(n)] = [x / args[1][0] for x in args[0]]
-        elif n.op == "sqrt":            # a constant: exact enough as a fraction?
+        elif n.op == "sqrt" and sqrt_digits:    # of a constant: to that many digits
+            (a,) = args[0]
+            k = 10 ** sqrt_digits
+            val[id(n)] = [Fr(math.isqrt(a.numerator * a.denominator * k * k), a.denominator * k)]
+        elif n.op == "sqrt":
             raise LookupError("sqrt")   # (handled by the caller)
         else:
             raise ValueError(n.op)
@@ -76,11 +84,14 @@ def _shifted(ex, t):
             for j in range(n + 1)]
 
 
-@pytest.mark.parametrize("name", POLYNOMIALS + WRITTEN[:1] + WRITTEN[2:])
-def test01_coefficients_and_shift_within_their_bounds(name, rng):
+@pytest.mark.parametrize("apriori", [True, False])
+@pytest.mark.parametrize("name", POLYNOMIALS + WRITTEN[:1] + WRITTEN[2:3])
+def test01_coefficients_and_shift_within_their_bounds(name, apriori, rng, monkeypatch):
     """For random rays: |c_k - exact| <= w_k for every coefficient; after a
     shift to a random t, F(t) within W(|t|), and the summed errors of the
-    shifted coefficients, weighted by x^k, within W(|t| + x)."""
+    shifted coefficients, weighted by x^k, within W(|t| + x). Both kinds
+    of bounds: a priori (``APRIORI``, the default) and running."""
+    monkeypatch.setattr(raypoly, "APRIORI", apriori)
     f = _expr(name)
     worst = 0.0
     for _ in range(25):
@@ -100,19 +111,44 @@ def test01_coefficients_and_shift_within_their_bounds(name, rng):
     assert worst > 1e-3                 # the bounds are not vacuous: errors are met
 
 
-def test02_constant_subexpressions():
-    """sqrt(2) in a polynomial is a constant with its own error bound: the
-    coefficients enclose the polynomial for every value within it (oracle:
-    exact expansion with sqrt(2) rounded either way by one ulp)."""
-    f = _expr(WRITTEN[1])
+@pytest.mark.parametrize("apriori", [True, False])
+@pytest.mark.parametrize("text", WRITTEN[1:2] + WRITTEN[3:])
+def test02_constant_subexpressions(text, apriori, monkeypatch):
+    """sqrt(2) in a polynomial (a factor, a divisor) is a constant with its
+    own error bound: the coefficients enclose the polynomial for every
+    value within it (oracle: exact expansion with sqrt(2) rounded either
+    way by one ulp). Both kinds of bounds (test01)."""
+    monkeypatch.setattr(raypoly, "APRIORI", apriori)
+    f = _expr(text)
     e, d = [0.3, -0.7, 1.1], [0.6, 0.2, -0.9]
     c, w = raypoly.ray_polynomial(f, e, d, NUMPY)
     root2 = math.sqrt(2)
     for r2 in (np.nextafter(root2, 0), np.nextafter(root2, 3)):
-        g = lgshape.parse(WRITTEN[1].replace("sqrt(2)", repr(float(r2))))
+        g = lgshape.parse(text.replace("sqrt(2)", repr(float(r2))))
         ex = _exact(g, e, d)
         for ck, wk, xk in zip(c, w, ex):
             assert abs(Fr(float(ck)) - xk) <= Fr(float(wk))
+
+
+@pytest.mark.parametrize("apriori", [True, False])
+def test02b_inexact_constant_far_from_its_value(apriori, monkeypatch):
+    """A constant subexpression whose float64 value is off by all of it:
+    sqrt(k) - 1.4142135623730951 with the parameter k = 2 (a named
+    constant: not folded) is 0 in float64 and -9.7e-17 exactly, here times
+    1e16, and a divisor sqrt(k): the coefficients' bounds come from the
+    constants' error bounds, not from the roundings (oracle: the exact
+    expansion with sqrt(2) to 60 digits)."""
+    monkeypatch.setattr(raypoly, "APRIORI", apriori)
+    f = lgshape.parse("(sqrt(k) - 1.4142135623730951) * 1e16 * (x*y - z)^2 / sqrt(k) + x",
+                      {"k": 2.0})
+    e, d = [0.3, -0.7, 1.1], [0.6, 0.2, -0.9]
+    c, w = raypoly.ray_polynomial(f, e, d, NUMPY)
+    ex = _exact(f, e, d, sqrt_digits=60)
+    err0 = abs(Fr(float(c[0])) - ex[0])
+    assert err0 > 1                                   # the float64 value is far off
+    for ck, wk, xk in zip(c, w, ex):
+        assert abs(Fr(float(ck)) - xk) <= Fr(float(wk))
+    assert Fr(float(w[0])) < 4 * err0                 # and its bound not vacuous
 
 
 @pytest.mark.parametrize("name", ["barth_sextic", "chmutov6", "clebsch"])
