@@ -131,6 +131,26 @@ def test02_constant_subexpressions(text, apriori, monkeypatch):
 
 
 @pytest.mark.parametrize("apriori", [True, False])
+@pytest.mark.parametrize("text", [
+    "(x^2 + y^2 + z^2 + R^2 - r^2)^2 - 4 * R^2 * (x^2 + y^2)",
+    "(x + r^2) * (y - R * r)^3 + (z / r - 1)^2 * x"])
+def test02c_named_parameters(text, apriori, rng, monkeypatch):
+    """Polynomials of scene parameters (named constants, not folded: their
+    products are constants computed with error bounds, mixed with the
+    ray's terms at every degree): every coefficient within its bound
+    (oracle: exact rationals from the parameters' float64 values)."""
+    monkeypatch.setattr(raypoly, "APRIORI", apriori)
+    f = lgshape.parse(text, {"R": 1.1, "r": 0.3})
+    for _ in range(10):
+        e, d = rng.normal(size=3) * 2, rng.normal(size=3)
+        c, w = raypoly.ray_polynomial(f, list(e), list(d), NUMPY)
+        ex = _exact(f, e, d)
+        assert len(c) == len(ex)
+        for ck, wk, xk in zip(c, w, ex):
+            assert abs(Fr(float(ck)) - xk) <= Fr(float(wk)), text
+
+
+@pytest.mark.parametrize("apriori", [True, False])
 def test02b_inexact_constant_far_from_its_value(apriori, monkeypatch):
     """A constant subexpression whose float64 value is off by all of it:
     sqrt(k) - 1.4142135623730951 with the parameter k = 2 (a named

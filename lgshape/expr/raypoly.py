@@ -125,6 +125,7 @@ def _ray_polynomial_apriori(f: Expr, e, d, m):
             val[id(n)] = _pow_apriori(val[id(n.args[0])], int(n.param))
         elif n.op == "div":              # by a constant (degree 0)
             (a, Ma, Ea, Na), (b, Mb, Eb, _) = (val[id(x)] for x in n.args)
+            Ea = _pad(Ea, len(a))
             b = b[0]
             ab = m.abs(b)
             c = [ai / b for ai in a]
@@ -151,14 +152,21 @@ def _ray_polynomial_apriori(f: Expr, e, d, m):
 def _add_errors(Ea, Eb):
     if Ea is None or Eb is None:
         return Eb if Ea is None else Ea
-    n = max(len(Ea), len(Eb))
-    return [(Ea[i] if i < len(Ea) else 0.0) + (Eb[i] if i < len(Eb) else 0.0) for i in range(n)]
+    Ea, Eb = _pad(Ea, len(Eb)), _pad(Eb, len(Ea))
+    return [x + y for x, y in zip(Ea, Eb)]
+
+
+def _pad(E, n: int):
+    """E (the constants' errors of a coefficient list, or None) with zeros
+    up to n coefficients."""
+    return None if E is None else list(E) + [0.0] * (n - len(E))
 
 
 def _mul_apriori(A, B):
     """Product of two (c, M, E, N): each c_k a sum of at most T products
     (T roundings on its longest path: the product and T - 1 additions)."""
     (a, Ma, Ea, Na), (b, Mb, Eb, Nb) = A, B
+    Ea, Eb = _pad(Ea, len(a)), _pad(Eb, len(b))
     c, M, E = [], [], ([] if Ea is not None or Eb is not None else None)
     T = 0
     for k in range(len(a) + len(b) - 1):
