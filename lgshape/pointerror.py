@@ -71,9 +71,10 @@ def e_sqrt(m, v, a, ea):
 
 def e_exp(m, v, a, ea):
     # exp(a + ea) - exp(a) = exp(a) (exp(ea) - 1), exp(ea) - 1 <= ea (1 + ea) for ea <= 1;
-    # the smallest normal covers a result that underflows (0 or a subnormal)
+    # where exp(a) underflows (0 or a subnormal: exp(a) below the smallest
+    # normal), exp(a + ea) <= tiny exp(ea) <= tiny (1 + grow) (grow >= 2 for ea > 1)
     grow = m.select(ea <= 1.0, ea * (1.0 + ea), m.exp(ea))
-    return v * (1.0 + m.eps_t) * grow + m.eps_t * v + m.tiny
+    return v * (1.0 + m.eps_t) * grow + m.eps_t * v + m.tiny * (1.0 + grow)
 
 
 def e_log(m, v, a, ea):

@@ -98,7 +98,7 @@ def test01_coefficients_and_shift_within_their_bounds(name, apriori, rng, monkey
         e, d, t, x = rng.normal(size=3) * 2, rng.normal(size=3), rng.normal(), abs(rng.normal())
         c, w = raypoly.ray_polynomial(f, list(e), list(d), NUMPY)
         ex = _exact(f, e, d)
-        assert len(c) == len(ex) == f.degree() + 1
+        assert len(c) == len(w) == len(ex) == f.degree() + 1
         for ck, wk, xk in zip(c, w, ex):
             err = abs(Fr(float(ck)) - xk)
             assert err <= Fr(float(wk)), (name, float(err), float(wk))
@@ -114,10 +114,11 @@ def test01_coefficients_and_shift_within_their_bounds(name, apriori, rng, monkey
 @pytest.mark.parametrize("apriori", [True, False])
 @pytest.mark.parametrize("text", WRITTEN[1:2] + WRITTEN[3:])
 def test02_constant_subexpressions(text, apriori, monkeypatch):
-    """sqrt(2) in a polynomial (a factor, a divisor) is a constant with its
-    own error bound: the coefficients enclose the polynomial for every
-    value within it (oracle: exact expansion with sqrt(2) rounded either
-    way by one ulp). Both kinds of bounds (test01)."""
+    """sqrt(2) in a polynomial (a factor, a divisor; folded to a float64
+    literal when the expression is built, so exact by definition there):
+    the coefficients enclose the polynomial for sqrt(2) rounded either way
+    by one ulp (oracle: exact expansion). Both kinds of bounds (test01).
+    The constants' own errors: test02b, test02c."""
     monkeypatch.setattr(raypoly, "APRIORI", apriori)
     f = _expr(text)
     e, d = [0.3, -0.7, 1.1], [0.6, 0.2, -0.9]
@@ -133,7 +134,8 @@ def test02_constant_subexpressions(text, apriori, monkeypatch):
 @pytest.mark.parametrize("apriori", [True, False])
 @pytest.mark.parametrize("text", [
     "(x^2 + y^2 + z^2 + R^2 - r^2)^2 - 4 * R^2 * (x^2 + y^2)",
-    "(x + r^2) * (y - R * r)^3 + (z / r - 1)^2 * x"])
+    "(x + r^2) * (y - R * r)^3 + (z / r - 1)^2 * x",
+    "x^2 + y^2 + z^2 - r^2", "x * y * z - R * r", "x - 2 * R * r"])
 def test02c_named_parameters(text, apriori, rng, monkeypatch):
     """Polynomials of scene parameters (named constants, not folded: their
     products are constants computed with error bounds, mixed with the
@@ -145,9 +147,15 @@ def test02c_named_parameters(text, apriori, rng, monkeypatch):
         e, d = rng.normal(size=3) * 2, rng.normal(size=3)
         c, w = raypoly.ray_polynomial(f, list(e), list(d), NUMPY)
         ex = _exact(f, e, d)
-        assert len(c) == len(ex)
+        assert len(c) == len(w) == len(ex)
         for ck, wk, xk in zip(c, w, ex):
             assert abs(Fr(float(ck)) - xk) <= Fr(float(wk)), text
+        # F(t) after a shift, within W(|t|) (W holds every coefficient's bound)
+        t = rng.normal()
+        cs, W = raypoly.shift(NUMPY, c, w, np.float64(t))
+        assert len(W) == len(c)
+        F = _shifted(ex, Fr(t))[0]
+        assert abs(Fr(float(cs[0])) - F) <= Fr(float(raypoly.bound(NUMPY, W, abs(t)))), text
 
 
 @pytest.mark.parametrize("apriori", [True, False])

@@ -373,7 +373,7 @@ def _smooth(seg: Segment, op: str, a: Quad) -> Quad:
     c1 = f1 * a.c1
     c2 = f1 * a.c2 + 0.5 * f2 * (a.c1 * a.c1)
     R = m.abs(f1) * a.R + 0.5 * m.abs(f2) * dd + M3 * (D * D * D) * (1.0 / 6.0)
-    R = R + ef * (1.0 + D + a.c1 * a.c1 * r2)
+    R = R + ef * (1.0 + D + D * D)
     R = R * (1.0 + seg.g) + seg.slack(m.abs(f0) + m.abs(c1) * r + m.abs(c2) * r2)
     return Quad(f0, c1, c2, R)
 

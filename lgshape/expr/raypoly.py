@@ -115,7 +115,7 @@ def _ray_polynomial_apriori(f: Expr, e, d, m):
                     c.append(k * b[i]), M.append(Mb[i])
                 else:
                     c.append(a[i] + k * b[i]), M.append(Ma[i] + Mb[i])
-            val[id(n)] = (c, M, _add_errors(Ea, Eb), max(Na, Nb) + 1)
+            val[id(n)] = (c, M, _pad(_add_errors(Ea, Eb), len(c)), max(Na, Nb) + 1)
         elif n.op == "neg":
             a, Ma, Ea, Na = val[id(n.args[0])]
             val[id(n)] = ([-v for v in a], Ma, Ea, Na)
@@ -144,8 +144,10 @@ def _ray_polynomial_apriori(f: Expr, e, d, m):
     c, M, E, N = val[id(f)]
     g = N * u
     up = (1.0 + 4.0 * g) * (1.0 + 2.0**-40)
+    E = _pad(E, len(c))
     w = [g * Mk * up for Mk in M] if E is None else \
         [(g * Mk + Ek) * up for Mk, Ek in zip(M, E)]
+    assert len(w) == len(c) == len(M)
     return list(c), w
 
 
