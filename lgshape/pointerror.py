@@ -7,7 +7,7 @@ that error for one op: given the computed arguments ``a``, their error bounds
 |exact op(exact args) - v| <= e. The bounds are relative to the magnitudes
 actually evaluated (no fixed absolute floor, so k * f has k times the error
 bound of f for any k; exp's, whose result may underflow, adds the smallest
-normal number ``m.tiny``), and they are evaluated together with the values, so
+normal number ``m.tiny`` times its growth over the argument's error), and they are evaluated together with the values, so
 each ray point gets its own bound. Unit roundoff ``m.u`` covers one
 correctly rounded op (+ - * / sqrt, with margin); ``m.eps_t`` covers the
 library's exp, log, sin and cos (64 ulp in float64). The error of computing
@@ -72,7 +72,7 @@ def e_sqrt(m, v, a, ea):
 def e_exp(m, v, a, ea):
     # exp(a + ea) - exp(a) = exp(a) (exp(ea) - 1), exp(ea) - 1 <= ea (1 + ea) for ea <= 1;
     # where exp(a) underflows (0 or a subnormal: exp(a) below the smallest
-    # normal), exp(a + ea) <= tiny exp(ea) <= tiny (1 + grow) (grow >= 2 for ea > 1)
+    # normal), the exact exp(a + ea) <= tiny exp(ea) <= tiny (1 + grow)
     grow = m.select(ea <= 1.0, ea * (1.0 + ea), m.exp(ea))
     return v * (1.0 + m.eps_t) * grow + m.eps_t * v + m.tiny * (1.0 + grow)
 

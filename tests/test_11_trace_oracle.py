@@ -447,23 +447,30 @@ def _blobs_f(X, Y, Z):
     return 0.5 - total
 
 
+def _scanned_rays(bbox, F, rng):
+    """96^2 camera rays and 4000 rays from inside the box, and their first
+    roots from a float64 scan of F (4096 steps a ray, bisected; inf where
+    none): (o32, d32, d as float64, ref)."""
+    from lgshape.camera import primary_rays
+    from lgshape.reference import first_sign_change
+    lo, hi = np.asarray(bbox[0]), np.asarray(bbox[1])
+    oc, dc = primary_rays(bbox, 96)
+    oi = (lo + (hi - lo) * rng.uniform(0, 1, (4000, 3))).astype(np.float32)
+    di = _unit(rng.normal(size=(4000, 3))).astype(np.float32)
+    o32, d32 = np.concatenate([oc, oi]), np.concatenate([dc, di])
+    o, d = o32.astype(np.float64), d32.astype(np.float64)
+    t0, t1 = clip_to_box(o, d, lo, hi)
+    return o32, d32, d, first_sign_change(F, o, d, t0, t1)
+
+
 def test05_blobs_in_horner_form(rng, monkeypatch):
     """The expression path takes f's sums of powers in Horner form
     (``HORNER``; the blobs' cubic kernels): the first hits are the same as
     with f as written, and both are the first roots of a float64 scan of
     the formula (4096 steps a ray, bisected), within the refinement
     tolerance. 96^2 camera rays and 4000 rays from inside the box."""
-    from lgshape.camera import primary_rays
-    from lgshape.reference import first_sign_change
     spec = lgshape.surfaces.LIBRARY["blobs"]()
-    lo, hi = np.asarray(spec.bbox[0]), np.asarray(spec.bbox[1])
-    oc, dc = primary_rays(spec.bbox, 96)
-    oi = (lo + (hi - lo) * rng.uniform(0, 1, (4000, 3))).astype(np.float32)
-    di = _unit(rng.normal(size=(4000, 3))).astype(np.float32)
-    o32, d32 = np.concatenate([oc, oi]), np.concatenate([dc, di])
-    o, d = o32.astype(np.float64), d32.astype(np.float64)
-    t0, t1 = clip_to_box(o, d, lo, hi)
-    ref = first_sign_change(_blobs_f, o, d, t0, t1)
+    o32, d32, d, ref = _scanned_rays(spec.bbox, _blobs_f, rng)
     sizes = {}
     for h in (False, True):
         monkeypatch.setattr(lgshape.trace, "HORNER", h)
@@ -497,20 +504,11 @@ def test06_gaussians_negligible_far_away(rng, monkeypatch):
     first roots of a float64 scan of the formula (4096 steps a ray,
     bisected) within the refinement tolerance. 96^2 camera rays and 4000
     rays from inside the box."""
-    from lgshape.camera import primary_rays
     from lgshape.expr import ops
-    from lgshape.reference import first_sign_change
     text = "0.05 - " + " - ".join(
         f"exp(-200 * ((x - {c[0]})^2 + (y - {c[1]})^2 + (z - {c[2]})^2))" for c in GAUSS_CENTRES)
     bbox = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
-    lo, hi = np.asarray(bbox[0]), np.asarray(bbox[1])
-    oc, dc = primary_rays(bbox, 96)
-    oi = (lo + (hi - lo) * rng.uniform(0, 1, (4000, 3))).astype(np.float32)
-    di = _unit(rng.normal(size=(4000, 3))).astype(np.float32)
-    o32, d32 = np.concatenate([oc, oi]), np.concatenate([dc, di])
-    o, d = o32.astype(np.float64), d32.astype(np.float64)
-    t0, t1 = clip_to_box(o, d, lo, hi)
-    ref = first_sign_change(_gauss_f, o, d, t0, t1)
+    o32, d32, d, ref = _scanned_rays(bbox, _gauss_f, rng)
     assert 0.02 < np.isfinite(ref).mean() < 0.5
     for flag in (False, True):
         monkeypatch.setattr(ops, "NEGLIGIBLE_EXP", flag)
