@@ -386,18 +386,21 @@ def _smooth(seg: Segment, op: str, a: Quad) -> Quad:
 BRANCH_MIXED = True
 
 
+def _branch(seg: Segment, cond, form, R_else: float, label: str) -> Quad:
+    """form() where ``cond``, in a branch that a packet takes only where one
+    of its lanes needs it; the constant form 0 +- R_else elsewhere."""
+    # (made before the branch: a value first made inside one lives there)
+    z = 0.0 * seg.r
+    other = (z, z, z, z + R_else)
+    return Quad(*seg.m.branch(cond, lambda: _astuple(form()), lambda: other, label=label))
+
+
 def _mixed(seg: Segment, cond, form) -> Quad:
     """form() where ``cond`` (an unknown form elsewhere, which the caller
     does not use there)."""
-    m = seg.m
     if not BRANCH_MIXED:
         return form()
-
-    # (made before the branch: a value first made inside one lives there)
-    z = 0.0 * seg.r
-    unknown = (z, z, z, z + math.inf)
-    out = m.branch(cond, lambda: _astuple(form()), lambda: unknown, label="lgshape_quad_mixed")
-    return Quad(*out)
+    return _branch(seg, cond, form, math.inf, "lgshape_quad_mixed")
 
 
 def _exp_form(seg: Segment, n: Expr, a: Quad, ranges) -> Quad:
@@ -405,14 +408,9 @@ def _exp_form(seg: Segment, n: Expr, a: Quad, ranges) -> Quad:
     branch that a packet takes only where one of its lanes' argument
     reaches :data:`~lgshape.expr.ops.EXP_FLOOR` on the segment; the
     constant form [0, EXP_TINY] elsewhere."""
-    m = seg.m
-    # (made before the branch: a value first made inside one lives there)
-    z = 0.0 * seg.r
-    low = ranges[0].hi < ops.EXP_FLOOR
-    out = m.branch(~low, lambda: _astuple(_narrower(seg, _smooth(seg, "exp", a),
-                                                    _via_interval(seg, n, ranges))),
-                   lambda: (z, z, z, z + ops.EXP_TINY), label="lgshape_quad_exp")
-    return Quad(*out)
+    return _branch(seg, ~(ranges[0].hi < ops.EXP_FLOOR),
+                   lambda: _narrower(seg, _smooth(seg, "exp", a), _via_interval(seg, n, ranges)),
+                   ops.EXP_TINY, "lgshape_quad_exp")
 
 
 def _astuple(q: Quad):

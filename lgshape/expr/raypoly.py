@@ -135,9 +135,11 @@ def _ray_polynomial_apriori(f: Expr, e, d, m):
             else:
                 # a'/b' - a/b = (a' - a)/b' + a (b - b') / (b b'), |b| >= |b'| - e_b
                 room = ab - Eb[0]
-                E = [m.select(room > 0, ((0.0 if Ea is None else Ea[i]) + (Ma[i] + (
-                    0.0 if Ea is None else Ea[i])) * Eb[0] / room) / ab, math.inf)
-                     for i in range(len(a))]
+                E = []
+                for i in range(len(a)):
+                    ea = 0.0 if Ea is None else Ea[i]
+                    E.append(m.select(room > 0, (ea + (Ma[i] + ea) * Eb[0] / room) / ab,
+                                      math.inf))
             val[id(n)] = (c, M, E, Na + 1)
         else:
             raise ValueError(f"op {n.op!r} in a polynomial")
