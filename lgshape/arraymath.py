@@ -66,7 +66,10 @@ class DrJitMath:
     inf = math.inf
     _consts: dict
 
-    def __init__(self, Float):
+    def __init__(self, Float, native=False):
+        """``native``: Dr.Jit's own functions on every backend (CUDA's
+        multi-function unit too), for code that needs no error bound (the
+        baselines); the bounds' ``eps_t`` does not hold for them on CUDA."""
         import drjit as dr
         self.dr, self.Float = dr, Float
         single = dr.type_v(Float) == dr.VarType.Float32
@@ -81,17 +84,34 @@ class DrJitMath:
         self._consts: dict[float, object] = {}
         self.sqrt, self.exp, self.log = dr.sqrt, dr.exp, dr.log
         self.sin, self.cos, self.abs = dr.sin, dr.cos, dr.abs
+        self._sincos = dr.sincos
+        if single and not native and dr.backend_v(Float) == dr.JitBackend.CUDA:
+            # CUDA's float32 sin, cos, exp and log run on the GPU's
+            # multi-function unit (sin.approx, ex2.approx, lg2.approx), whose
+            # errors are absolute and grow with |x|, with no documented bound
+            # for large |x|. Measured on an H200: exp's relative error is
+            # about |x| 2^-24 (the rounding of x log2(e)), above eps_t on 12%
+            # of x in [-88, 88]; sin and cos stayed within e_periodic's
+            # eps_t + 2 u |x| on [-300, 300], with a margin of 2. So all four
+            # are computed in float64 (Dr.Jit's CEPHES code) and rounded.
+            self.sin, self.cos, self.exp, self.log = (
+                _via_float64(Float, f) for f in (dr.sin, dr.cos, dr.exp, dr.log))
+            self._sincos = _via_float64(Float, dr.sincos)
         self.floor, self.ceil, self.isnan, self.isfinite = dr.floor, dr.ceil, dr.isnan, dr.isfinite
         self.minimum, self.maximum, self.select = dr.minimum, dr.maximum, dr.select
 
     def sincos(self, v):
-        return self.dr.sincos(v)
+        return self._sincos(v)
 
     def sincos32(self, v):
         """sin v and cos v computed in float32 (v rounded to float32), in
         v's type."""
         dr = self.dr
-        s, c = dr.sincos(dr.float32_array_t(type(v))(v))
+        v32 = dr.float32_array_t(type(v))(v)
+        if dr.backend_v(v32) == dr.JitBackend.CUDA:      # not the MUFU's (see above)
+            s, c = dr.sincos(dr.float64_array_t(type(v))(v32))
+            return type(v)(type(v32)(s)), type(v)(type(v32)(c))
+        s, c = dr.sincos(v32)
         return type(v)(s), type(v)(c)
 
     def const(self, c: float):
@@ -128,6 +148,33 @@ class DrJitMath:
 
 
 NUMPY = NumpyMath()
+
+
+def _via_float64(Float, fn):
+    """fn computed in float64 and rounded to ``Float`` (one array or a
+    tuple of them)."""
+    import drjit as dr
+    Float64 = dr.float64_array_t(Float)
+
+    def wrapped(v):
+        out = fn(Float64(v))
+        return tuple(Float(w) for w in out) if isinstance(out, tuple) else Float(out)
+    return wrapped
+
+
+def exact_arithmetic(Float):
+    """A context in which Dr.Jit's float32 division and square root are
+    IEEE's (correctly rounded), as the error model assumes: on CUDA, Dr.Jit's
+    default fast-math mode makes them div.approx / sqrt.approx (2 ulp, and
+    div.approx returns 0 for divisors above 2^126); the flag is read when an
+    operation is traced, so the search is traced inside this context. LLVM's
+    are always IEEE's (nothing to do)."""
+    import contextlib
+
+    import drjit as dr
+    if dr.backend_v(Float) == dr.JitBackend.CUDA:
+        return dr.scoped_set_flag(dr.JitFlag.FastMath, False)
+    return contextlib.nullcontext()
 
 
 def math_for(value):

@@ -30,7 +30,7 @@ def _setup(surface, o, d, t_min, t_max):
     Float = type(o.x)
     t0, t1 = clip_to_box(o, d, [float(v) for v in surface.lo], [float(v) for v in surface.hi],
                          t_min, t_max)
-    m = DrJitMath(Float)
+    m = DrJitMath(Float, native=True)     # a baseline's fastest: no error bounds here
 
     def F(t):
         return evaluate(surface.expr, {"x": o.x + t * d.x, "y": o.y + t * d.y, "z": o.z + t * d.z}, m)

@@ -88,7 +88,7 @@ from . import interval as iv
 from .expr import raypoly, raytrig
 from .expr.quadratic import (Segment, evaluate_quadratic, quad_clip, quad_ends, quad_env,
                              quad_range)
-from .arraymath import NUMPY, DrJitMath
+from .arraymath import NUMPY, DrJitMath, exact_arithmetic
 from .expr import (Expr, evaluate, evaluate_with_error, gradient, hessian, parse,
                    ray_derivatives)
 from .expr.horner import horner
@@ -1256,6 +1256,11 @@ def _prepare_rays(K, o, d, t_min, t_max, active, n):
 
 
 def _search(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
+    with exact_arithmetic(type(o.x)):        # IEEE division and sqrt on CUDA too
+        return _search_traced(surf, o, d, t_min, t_max, active, any_hit)
+
+
+def _search_traced(surf: Surface, o, d, t_min, t_max, active, any_hit) -> RayResult:
     import drjit as dr
     Float = type(o.x)
     K = surf._kernel_data(Float)

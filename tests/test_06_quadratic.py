@@ -398,7 +398,7 @@ def test13_negligible_exp(f, rng, monkeypatch):
     branch a packet skips), and its point value, where the argument with
     its error stays below EXP_FLOOR - 1, is 0 within EXP_TINY. Oracles:
     the forms and point values computed without it (every lane's exp), bit
-    for bit on the other lanes; sampled float64 values of f inside the
+    for bit on the other lanes (on LLVM: see below for CUDA); sampled float64 values of f inside the
     forms' ranges (test01's rule) and within the point values' error
     bounds of the float64 value. Narrow Gaussians: most segments of the
     box see them below the floor, some do not."""
@@ -426,8 +426,9 @@ def test13_negligible_exp(f, rng, monkeypatch):
     if e is gauss:
         assert np.all(forms[True][0][low] == 0) and np.all(forms[True][1][low] == 0)
         assert np.all(forms[True][3][low] == np.float32(ops.EXP_TINY))
+    bitwise = JIT.__name__ == "drjit.llvm"   # see the point values' check below
     for x, y in zip(forms[False], forms[True]):
-        assert np.array_equal(x[~low], y[~low], equal_nan=True)
+        assert not bitwise or np.array_equal(x[~low], y[~low], equal_nan=True)
     t = a[:, None] + (b - a)[:, None] * np.linspace(0, 1, SAMPLES)[None]
     v = _values(e, o, d, t)
     for flag in (False, True):
@@ -441,7 +442,13 @@ def test13_negligible_exp(f, rng, monkeypatch):
     for flag in (False, True):
         val, err = points[flag]
         assert np.all(np.abs(val - ref) <= err), flag
-    assert np.array_equal(points[False][0][~low_p], points[True][0][~low_p])
-    assert np.array_equal(points[False][1][~low_p], points[True][1][~low_p])
+    if bitwise:
+        # Not on CUDA: its PTX (mul/add without .rn) lets the assembler fuse a
+        # product and a sum into an fma differently in the two kernels; on an
+        # H200 the arguments (about -70) came out an ulp apart on 23 of 135
+        # lanes, their exps 1.4e-14 apart (the forms' c0, R likewise, a
+        # float32 ulp), all within the bounds checked above.
+        assert np.array_equal(points[False][0][~low_p], points[True][0][~low_p])
+        assert np.array_equal(points[False][1][~low_p], points[True][1][~low_p])
     if e is gauss:
         assert np.all(points[True][0][low_p] == 0)
