@@ -38,7 +38,7 @@ import numpy as np
 import pytest
 
 import drjit as dr
-from conftest import JIT_AD, VARIANT
+from conftest import JIT_AD
 
 Float = JIT_AD.Float
 
@@ -199,10 +199,6 @@ def test03_nested_parentheses():
     assert parse(to_string(f)) is f
 
 
-@pytest.mark.xfail(VARIANT.startswith("cuda"), strict=True,
-                   reason="Dr.Jit's float32 sin on CUDA is the hardware approximation (absolute, "
-                          "not relative, error near 1e-7): 10,000 nested sines drift by 3%. "
-                          "Enclosures pad sin absolutely; test_02 checks them on this backend")
 def test04_nested_sin():
     """sin(sin(...sin(x)...)) 10,000 deep; oracle: the loop v <- sin(v) in
     numpy, with f' = prod cos(v_k) and f'' by the chain rule in the loop."""
