@@ -873,13 +873,24 @@ def main(argv=None) -> int:
     p.add_argument("--no-compile", dest="compile", action="store_false")
     p.add_argument("--variant", default=VARIANT,
                    help=f"Mitsuba variant, a JIT one (default: {VARIANT}; cuda_ad_rgb on a GPU)")
+    p.add_argument("--res", type=int, metavar="N",
+                   help="camera rays N x N (default 512; a GPU needs more rays than a "
+                        "wave of its threads for the launch's fixed costs not to dominate)")
+    p.add_argument("--incoherent", type=int, metavar="N", help="incoherent rays (default 262144)")
     args = p.parse_args(argv)
+    for name in ("res", "incoherent"):
+        v = getattr(args, name)
+        if v is not None and v < 1:
+            p.error(f"--{name} must be a positive integer, not {v}")
+    base = QUICK if args.quick else FULL
+    cfg = SpeedConfig(**{**asdict(base), **{k: getattr(args, k) for k in ("res", "incoherent")
+                                            if getattr(args, k) is not None}})
     t0 = time.perf_counter()
 
     def log(msg):
         print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
     results = run(log, quick=args.quick, surfaces=args.surfaces, cornell=args.cornell,
-                  compile_latency=args.compile, variant=args.variant)
+                  compile_latency=args.compile, cfg=cfg, variant=args.variant)
     os.makedirs(os.path.join(args.out, "charts"), exist_ok=True)
     chart(results, os.path.join(args.out, "charts", "speed.png"))
     with open(os.path.join(args.out, "speed.json"), "w") as fh:

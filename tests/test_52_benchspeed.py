@@ -225,3 +225,22 @@ def test06_report_and_chart(quick, tmp_path):
     assert os.path.getsize(path) > 1000
     import json
     json.dumps(res, allow_nan=False)                  # JSON-serialisable as it is
+
+
+def test08_command_line_ray_counts(tmp_path, capsys):
+    """--res and --incoherent set the ray counts (for a GPU, whose launch
+    costs need more rays than the CPU's defaults): oracle, the records'
+    ray counts (res^2 camera rays, the incoherent count) and the config;
+    a count below 1 is refused, naming the option."""
+    import json
+    out = tmp_path / "bs"
+    assert S.main(["--out", str(out), "--quick", "--surfaces", "sphere", "--no-cornell",
+                   "--no-compile", "--res", "12", "--incoherent", "333"]) == 0
+    res = json.loads((out / "speed.json").read_text())
+    rays = {r["kind"]: r["rays"] for r in res["rows"]}
+    assert rays["camera"] == 144 and rays["incoherent"] == 333
+    assert 0 < rays["shadow"] <= 144
+    assert res["meta"]["config"]["res"] == 12 and res["meta"]["config"]["incoherent"] == 333
+    with pytest.raises(SystemExit) as err:
+        S.main(["--out", str(out), "--incoherent", "0"])
+    assert err.value.code == 2 and "--incoherent must be a positive integer" in capsys.readouterr().err
