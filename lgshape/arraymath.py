@@ -78,8 +78,9 @@ class DrJitMath:
         self.eps = 2.0 ** -22 if single else 2.0 ** -51
         self.eps_t = 2.0 ** -19 if single else 2.0 ** -46
         self.u = 2.0 ** -23 if single else 2.0 ** -52
-        # Absolute slack for underflow: the smallest normal number, which
-        # also covers a backend that flushes subnormals to zero.
+        # Absolute slack for underflow: the smallest normal number. exp's
+        # rule adds it (an exp that underflows, gradually or flushed to 0);
+        # the other ops' underflow (a product below it) is outside the model.
         self.tiny = 2.0 ** -126 if single else 2.0 ** -1020
         self._consts: dict[float, object] = {}
         self.sqrt, self.exp, self.log = dr.sqrt, dr.exp, dr.log
@@ -107,11 +108,11 @@ class DrJitMath:
         """sin v and cos v computed in float32 (v rounded to float32), in
         v's type."""
         dr = self.dr
-        v32 = dr.float32_array_t(type(v))(v)
-        if dr.backend_v(v32) == dr.JitBackend.CUDA:      # not the MUFU's (see above)
-            s, c = dr.sincos(dr.float64_array_t(type(v))(v32))
-            return type(v)(type(v32)(s)), type(v)(type(v32)(c))
-        s, c = dr.sincos(v32)
+        Float32 = dr.float32_array_t(type(v))
+        fn = dr.sincos
+        if dr.backend_v(Float32) == dr.JitBackend.CUDA:   # not the MUFU's (see above)
+            fn = _via_float64(Float32, dr.sincos)
+        s, c = fn(Float32(v))
         return type(v)(s), type(v)(c)
 
     def const(self, c: float):
@@ -150,6 +151,18 @@ class DrJitMath:
 NUMPY = NumpyMath()
 
 
+def zero_like(v):
+    """0 of v's shape and type: for a Dr.Jit array a literal zero (what
+    ``0.0 * v`` gives under Dr.Jit's fast math, also inside
+    :func:`exact_arithmetic`, where the product would be traced and be NaN
+    for an infinite v); for anything else ``0.0 * v`` (numpy: NaN where v
+    is, as the float64 oracles always had it)."""
+    if type(v).__module__.startswith("drjit"):
+        import drjit as dr
+        return dr.zeros(type(v), dr.width(v))
+    return 0.0 * v
+
+
 def _via_float64(Float, fn):
     """fn computed in float64 and rounded to ``Float`` (one array or a
     tuple of them)."""
@@ -168,7 +181,14 @@ def exact_arithmetic(Float):
     default fast-math mode makes them div.approx / sqrt.approx (2 ulp, and
     div.approx returns 0 for divisors above 2^126); the flag is read when an
     operation is traced, so the search is traced inside this context. LLVM's
-    are always IEEE's (nothing to do)."""
+    ``/`` and sqrt are IEEE's either way (nothing to do there).
+
+    Fast math off also keeps ``0.0 * x`` a product (NaN for an infinite x):
+    the rules make their zeros with :func:`zero_like`, the literal either
+    way. Not covered, on any backend: ``dr.rcp`` and ``dr.rsqrt`` (approximate
+    under fast math; the search uses neither) and ``x / c`` for a literal c,
+    which Dr.Jit traces as x times the rounded 1 / c (two roundings, within
+    ``u``, twice the unit roundoff)."""
     import contextlib
 
     import drjit as dr

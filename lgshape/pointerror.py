@@ -22,6 +22,8 @@ argument cannot be told from 0; ``kink`` (a Dirac measure) is 0 as a value.
 """
 from __future__ import annotations
 
+from .arraymath import zero_like
+
 SAFETY = 1.0 + 2.0 ** -40     # covers the rounding of the error computation
 
 
@@ -91,8 +93,8 @@ def e_periodic(m, v, a, ea):
 
 
 def e_step(m, v, a, ea):
-    return m.select(m.abs(a) > ea, 0.0, 1.0) + 0.0 * v
+    return m.select(m.abs(a) > ea, 0.0, 1.0) + zero_like(v)
 
 
 def e_zero(m, v, a, ea):
-    return 0.0 * v
+    return zero_like(v)

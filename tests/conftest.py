@@ -20,6 +20,12 @@ JIT_AD = importlib.import_module(JIT.__name__ + ".ad")
 if VARIANT != "llvm_ad_rgb":
     import mitsuba
     mitsuba.set_variant(VARIANT)     # numpy rays then go to its backend (trace.default_array3f)
+if VARIANT.startswith("cuda"):
+    # The rules' own tests (intervals, forms, point errors) run outside the
+    # search; give them the arithmetic the search is traced with
+    # (arraymath.exact_arithmetic). test_17 checks that context itself.
+    import drjit as _dr
+    _dr.set_flag(_dr.JitFlag.FastMath, False)
 
 x, y, z = N.var("x"), N.var("y"), N.var("z")
 u = x * y - z + 0.3          # a non-trivial argument, so composition is exercised

@@ -427,8 +427,9 @@ def test13_negligible_exp(f, rng, monkeypatch):
         assert np.all(forms[True][0][low] == 0) and np.all(forms[True][1][low] == 0)
         assert np.all(forms[True][3][low] == np.float32(ops.EXP_TINY))
     bitwise = JIT.__name__ == "drjit.llvm"   # see the point values' check below
-    for x, y in zip(forms[False], forms[True]):
-        assert not bitwise or np.array_equal(x[~low], y[~low], equal_nan=True)
+    if bitwise:
+        for x, y in zip(forms[False], forms[True]):
+            assert np.array_equal(x[~low], y[~low], equal_nan=True)
     t = a[:, None] + (b - a)[:, None] * np.linspace(0, 1, SAMPLES)[None]
     v = _values(e, o, d, t)
     for flag in (False, True):

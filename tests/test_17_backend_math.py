@@ -28,8 +28,8 @@ def _args(rng, lo, hi):
 
 
 def _near_zeros(rng, k_max):
-    """Points within a few ulp of k pi / 2, where sin or cos is near 0 (an
-    absolute library error is largest relative to the value there)."""
+    """Points within 1e-6 (relative) of k pi / 2, where sin or cos is near
+    0 (an absolute library error is largest relative to the value there)."""
     k = rng.integers(-k_max, k_max, N)
     return k * (0.5 * math.pi) * (1.0 + rng.uniform(-1e-6, 1e-6, N))
 
@@ -94,8 +94,8 @@ def test04_division_and_sqrt_correctly_rounded_where_the_search_is_traced(rng):
     b[:100] = np.float32(1e38)
     Float = JIT.Float
     A, B = Float(a), Float(b)
-    with exact_arithmetic(Float):
-        q, r = A / B, dr.sqrt(A)
+    with dr.scoped_set_flag(dr.JitFlag.FastMath, True), exact_arithmetic(Float):
+        q, r = A / B, dr.sqrt(A)          # (Dr.Jit's default; conftest clears it on CUDA)
     dr.eval(q, r)
     assert np.array_equal(np.asarray(q), a / b)
     assert np.array_equal(np.asarray(r), np.sqrt(a))

@@ -8,7 +8,7 @@ walk happens while tracing, so the result is one fused kernel.
 from __future__ import annotations
 
 from .. import interval as iv
-from ..arraymath import math_for
+from ..arraymath import math_for, zero_like
 from .node import Expr, topological
 from . import ops
 from .ops import OPS
@@ -104,7 +104,7 @@ def evaluate_interval(roots, env: dict, m):
 def _exp_with_error(m, op, a, ea):
     """exp(a) and its error bound, where some lane's a + ea reaches EXP_FLOOR
     - 1 (the margin covers the rounding of a + ea); [0, EXP_TINY] elsewhere."""
-    zero = 0.0 * a
+    zero = zero_like(a)
     low = a + ea < ops.EXP_FLOOR - 1.0
 
     def full():

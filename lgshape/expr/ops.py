@@ -22,7 +22,7 @@ from typing import Callable
 
 from .. import interval as iv
 from .. import pointerror as pe
-from ..arraymath import powi
+from ..arraymath import powi, zero_like
 from . import node as N
 
 
@@ -82,9 +82,9 @@ _TABLE = [
     Op("max", 2, lambda m, a, b: m.maximum(a, b),
        lambda e, a, d: N.add(d[1], N.mul(N.step(N.sub(a[0], a[1])), N.sub(d[0], d[1]))),
        iv.i_max, pe.e_minmax, rounding="exact"),
-    Op("step", 1, lambda m, a: m.select(a > 0, 1.0, 0.0) + 0.0 * a,
+    Op("step", 1, lambda m, a: m.select(a > 0, 1.0, 0.0) + zero_like(a),
        lambda e, a, d: N.kink(a[0]), iv.i_step, pe.e_step, public=False, rounding="exact"),
-    Op("kink", 1, lambda m, a: 0.0 * a, lambda e, a, d: N.ZERO, iv.i_kink, pe.e_zero,
+    Op("kink", 1, lambda m, a: zero_like(a), lambda e, a, d: N.ZERO, iv.i_kink, pe.e_zero,
        public=False, rounding="exact"),
 ]
 

@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 
 from .. import interval as iv
-from ..arraymath import powi
+from ..arraymath import powi, zero_like
 from .evaluate import _lookup, constant
 from .node import Expr, topological
 from . import ops
@@ -94,7 +94,7 @@ def coordinate(seg: Segment, e, d, tm, offset=None):
         mid = 0.5 * (lo + hi)
         c0 = c0 + mid
         R = R + (hi - lo) * 0.5 + m.abs(c0) * m.eps + m.tiny
-    return Quad(c0, d, 0.0 * d, R)
+    return Quad(c0, d, zero_like(d), R)
 
 
 def from_interval(m, a: iv.Interval) -> Quad:
@@ -103,13 +103,13 @@ def from_interval(m, a: iv.Interval) -> Quad:
     mid = m.select(ok, 0.5 * (a.lo + a.hi), 0.0)
     half = 0.5 * (a.hi - a.lo)
     R = m.select(ok, half + (m.abs(a.lo) + m.abs(a.hi)) * m.eps + m.tiny, math.inf)
-    z = 0.0 * mid
+    z = zero_like(mid)
     return Quad(mid, z, z, R)
 
 
 def _plain(m, v) -> Quad:
     """A plain (computed) value: rounding padded as :func:`interval.promote`."""
-    z = 0.0 * v
+    z = zero_like(v)
     return Quad(v, z, z, m.abs(v) * m.eps + m.tiny)
 
 
@@ -330,7 +330,7 @@ def _chord(seg: Segment, op: str, a: Quad, b: Quad | None) -> Quad:
     c0 = base.c0 + sign * 0.5 * beta
     R = base.R + 0.5 * beta * (1.0 + 4.0 * m.u) + seg.slack(m.abs(c0) + beta)
     bad = ~(m.abs(beta) < math.inf)
-    inf = 0.0 * c0 + math.inf
+    inf = zero_like(c0) + math.inf
     return Quad(c0, base.c1, base.c2, m.select(bad, inf, R))
 
 
@@ -390,7 +390,7 @@ def _branch(seg: Segment, cond, form, R_else: float, label: str) -> Quad:
     """form() where ``cond``, in a branch that a packet takes only where one
     of its lanes needs it; the constant form 0 +- R_else elsewhere."""
     # (made before the branch: a value first made inside one lives there)
-    z = 0.0 * seg.r
+    z = zero_like(seg.r)
     other = (z, z, z, z + R_else)
     return Quad(*seg.m.branch(cond, lambda: _astuple(form()), lambda: other, label=label))
 

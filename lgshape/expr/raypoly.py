@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 
-from ..arraymath import powi
+from ..arraymath import powi, zero_like
 from .evaluate import evaluate_with_error
 from .node import Expr, topological
 
@@ -198,7 +198,7 @@ def _mul_apriori(A, B):
 
 def _pow_apriori(A, n: int):
     if n == 0:
-        z = 0.0 * A[0][0]
+        z = zero_like(A[0][0])
         return [z + 1.0], [z + 1.0], None, 0
     return powi(A, n, _mul_apriori)
 
@@ -276,7 +276,7 @@ def _mul(m, A, B):
 
 def _pow(m, A, n: int):
     if n == 0:
-        z = 0.0 * A[0][0]
+        z = zero_like(A[0][0])
         return [z + 1.0], [z]
     return powi(A, n, lambda p, q: _mul(m, p, q))
 

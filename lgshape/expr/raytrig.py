@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..arraymath import zero_like
 from .evaluate import evaluate_with_error
 from .node import Expr, product_chain
 from .raypoly import ray_polynomial
@@ -193,7 +194,7 @@ def ray_sinusoids(T: TrigSum, e, d, m) -> RaySinusoids:
         out.omega.append(omega)
         aA = m.abs(A)
         Om = m.abs(omega) + eo
-        p_prev, p = 0.0, 1.0 + 0.0 * Om          # Om^(j-1), Om^j
+        p_prev, p = 0.0, 1.0 + zero_like(Om)          # Om^(j-1), Om^j
         for j in range(4):
             out.B[j] = out.B[j] + aA * p * base + eA * p + j * aA * p_prev * eo
             out.S[j] = out.S[j] + aA * p * slope
@@ -265,7 +266,7 @@ def value_and_slope(m, R: RaySinusoids, t, sinusoids):
     error bounds: one sine and cosine per argument, the sinusoids' by angle
     addition."""
     sc = [m.sincos(a + b * t) for a, b in zip(R.a, R.b)]
-    F, g = R.C + 0.0 * t, 0.0 * t
+    F, g = R.C + zero_like(t), zero_like(t)
     for A, omega, k in zip(R.A, R.omega, sinusoids):
         sn, cs = _phase_sincos(k, sc)
         v, dv = (sn, cs) if k.trig == "sin" else (cs, -sn)
