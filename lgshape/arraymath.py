@@ -85,8 +85,8 @@ class DrJitMath:
         self._consts: dict[float, object] = {}
         self.sqrt, self.exp, self.log = dr.sqrt, dr.exp, dr.log
         self.sin, self.cos, self.abs = dr.sin, dr.cos, dr.abs
-        self._sincos = dr.sincos
-        if single and not native and dr.backend_v(Float) == dr.JitBackend.CUDA:
+        self._sincos = self._sincos32 = dr.sincos
+        if not native and dr.backend_v(Float) == dr.JitBackend.CUDA:
             # CUDA's float32 sin, cos, exp and log run on the GPU's
             # multi-function unit (sin.approx, ex2.approx, lg2.approx), whose
             # errors are absolute and grow with |x|, with no documented bound
@@ -94,10 +94,13 @@ class DrJitMath:
             # about |x| 2^-24 (the rounding of x log2(e)), above eps_t on 12%
             # of x in [-88, 88]; sin and cos stayed within e_periodic's
             # eps_t + 2 u |x| on [-300, 300], with a margin of 2. So all four
-            # are computed in float64 (Dr.Jit's CEPHES code) and rounded.
-            self.sin, self.cos, self.exp, self.log = (
-                _via_float64(Float, f) for f in (dr.sin, dr.cos, dr.exp, dr.log))
-            self._sincos = _via_float64(Float, dr.sincos)
+            # are computed in float64 (Dr.Jit's CEPHES code) and rounded
+            # (sincos32's float32 sine and cosine too, at any precision).
+            self._sincos32 = _via_float64(dr.float32_array_t(Float), dr.sincos)
+            if single:
+                self.sin, self.cos, self.exp, self.log = (
+                    _via_float64(Float, f) for f in (dr.sin, dr.cos, dr.exp, dr.log))
+                self._sincos = _via_float64(Float, dr.sincos)
         self.floor, self.ceil, self.isnan, self.isfinite = dr.floor, dr.ceil, dr.isnan, dr.isfinite
         self.minimum, self.maximum, self.select = dr.minimum, dr.maximum, dr.select
 
@@ -107,12 +110,7 @@ class DrJitMath:
     def sincos32(self, v):
         """sin v and cos v computed in float32 (v rounded to float32), in
         v's type."""
-        dr = self.dr
-        Float32 = dr.float32_array_t(type(v))
-        fn = dr.sincos
-        if dr.backend_v(Float32) == dr.JitBackend.CUDA:   # not the MUFU's (see above)
-            fn = _via_float64(Float32, dr.sincos)
-        s, c = fn(Float32(v))
+        s, c = self._sincos32(self.dr.float32_array_t(type(v))(v))
         return type(v)(s), type(v)(c)
 
     def const(self, c: float):
