@@ -1,0 +1,169 @@
+"""Where lgshape's ray kernel spends its cycles, instruction by instruction.
+
+Samples the CPU (``perf record``, Linux) while a child process traces the
+same rays through one library surface again and again on the LLVM backend;
+the child then copies the code of Dr.Jit's kernels (the process's anonymous
+executable mappings) to files. The samples that fall in the kernel with the
+most of them are attributed to its machine instructions (``objdump``), to
+its loops (a backward jump closes one) and to the straight stretches
+between loop boundaries; each stretch is listed with its share, its
+instruction count, its float64 (``pd``) and float32 (``ps``) vector
+instructions and its gathers.
+
+In the search's kernel the loops come in code order: the first walk (the
+DDA of ``lgshape.grid.Walker.next``), the search loop (``lgshape_search``,
+which holds the walk's DDA again), then the refinement loop. A sample lands
+on the instruction after the one that stalls (a gather's wait shows on the
+next instruction).
+
+Run: python benchmarks/kernel_profile.py gyroid [--rays incoherent] [--seconds 8]
+(needs ``perf`` and ``objdump``; the cores should be quiet)
+"""
+import argparse
+import collections
+import ctypes
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def child(args):
+    import drjit as dr
+    import mitsuba as mi
+    mi.set_variant("llvm_ad_rgb")
+    from lgshape import benchspeed, camera, surfaces
+    from lgshape.bench import Rays
+    from lgshape.trace import Surface
+    spec = surfaces.LIBRARY[args.surface]()
+    surf = Surface(spec)
+    if args.rays == "camera":
+        o, d = camera.primary_rays(spec.bbox, args.res)
+    else:
+        o, d = benchspeed.incoherent_rays(spec, args.res * args.res)
+    R = Rays(o, d)
+
+    def run():
+        r = surf.trace(R.o_dr, R.d_dr)
+        dr.eval(r.hit, r.t)
+        dr.sync_thread()
+    for _ in range(3):                  # compile, record the frozen function
+        run()
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < args.seconds:
+        run()
+    with open(os.path.join(args.out, "maps.txt"), "w") as maps:
+        k = 0
+        for line in open("/proc/self/maps"):
+            parts = line.split()
+            if "x" in parts[1] and len(parts) < 6:      # anonymous, executable
+                lo, hi = (int(v, 16) for v in parts[0].split("-"))
+                with open(os.path.join(args.out, f"code{k}.bin"), "wb") as f:
+                    f.write(ctypes.string_at(lo, hi - lo))
+                maps.write(f"{k} {lo:x} {hi:x}\n")
+                k += 1
+
+
+def disassemble(path, base):
+    out = subprocess.run(["objdump", "-D", "-b", "binary", "-mi386:x86-64",
+                          f"--adjust-vma={base:#x}", path],
+                         capture_output=True, text=True, check=True).stdout
+    ins = []
+    for line in out.splitlines():
+        m = re.match(r"\s*([0-9a-f]+):\s+(?:[0-9a-f]{2} )+\s*(.*)", line)
+        if m:
+            ins.append((int(m.group(1), 16) - base, m.group(2).strip()))
+    return ins
+
+
+def analyse(samples, code, base):
+    """The kernel's loops and stretches with their shares of ``samples``
+    (a Counter of sampled addresses) over the machine code ``code`` (bytes)
+    loaded at ``base``: (inside, loops, stretches, ins). ``inside``: the
+    samples in the code; ``loops``: (start, end, share %), a loop from a
+    backward jump's target to the jump; ``stretches``: (start, end, share %,
+    instructions) between loop boundaries; offsets from ``base``."""
+    with tempfile.NamedTemporaryFile(suffix=".bin") as f:
+        f.write(code)
+        f.flush()
+        ins = disassemble(f.name, base)
+    end = len(code)
+
+    def count(lo, hi):
+        return sum(c for a, c in samples.items() if base + lo <= a < base + hi)
+    inside = count(0, end)
+
+    def share(lo, hi):
+        return 100 * count(lo, hi) / max(inside, 1)
+    loops, cuts = [], {0, end}
+    for a, text in ins:
+        m = re.match(r"j\w+\s+0x([0-9a-f]+)", text)
+        if m and int(m.group(1), 16) - base <= a:
+            t = int(m.group(1), 16) - base
+            loops.append((t, a, share(t, a + 1)))
+            cuts |= {t, a + 1}
+    cuts = sorted(cuts)
+    stretches = [(lo, hi, share(lo, hi), [t for a, t in ins if lo <= a < hi])
+                 for lo, hi in zip(cuts, cuts[1:])]
+    return inside, loops, stretches, ins
+
+
+def report(samples, work):
+    regions = [(int(k), int(lo, 16), int(hi, 16))
+               for k, lo, hi in (line.split() for line in open(os.path.join(work, "maps.txt")))]
+
+    def count(lo, hi):
+        return sum(c for a, c in samples.items() if lo <= a < hi)
+    k, base, end = max(regions, key=lambda r: count(r[1], r[2]))
+    with open(os.path.join(work, f"code{k}.bin"), "rb") as f:
+        code = f.read()
+    inside, loops, stretches, ins = analyse(samples, code, base)
+    print(f"the kernel holds {100 * inside / max(sum(samples.values()), 1):.1f}% of "
+          f"{sum(samples.values())} samples")
+    print("loops (start-end: share of the kernel's samples):")
+    for lo, hi, sh in loops:
+        print(f"  {lo:6x}-{hi:6x} {sh:5.1f}%")
+    print("stretches between loop boundaries (over 0.5%):")
+    for lo, hi, sh, part in stretches:
+        if sh > 0.5:
+            print(f"  {lo:6x}-{hi:6x} {sh:5.1f}%  {len(part):5d} instructions, "
+                  f"pd {sum('pd ' in t for t in part)}, ps {sum('ps ' in t for t in part)}, "
+                  f"gathers {sum('gather' in t for t in part)}")
+    print("hottest instructions (the sample's instruction; the one before it):")
+    where = {a: i for i, (a, _) in enumerate(ins)}
+    top = sorted(((c, a - base) for a, c in samples.items() if a - base in where), reverse=True)
+    for c, a in top[:12]:
+        i = where[a]
+        print(f"  {100 * c / inside:5.1f}%  {a:6x}  {ins[i][1][:48]:48s} | {ins[i - 1][1][:48]}")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("surface")
+    ap.add_argument("--rays", choices=("camera", "incoherent"), default="camera")
+    ap.add_argument("--res", type=int, default=512, help="camera rays per side (incoherent: "
+                    "res^2 rays)")
+    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--child-out", dest="out", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.out:
+        return child(args)
+    for tool in ("perf", "objdump"):
+        if shutil.which(tool) is None:
+            sys.exit(f"kernel_profile: needs {tool!r} on the PATH")
+    with tempfile.TemporaryDirectory() as work:
+        data = os.path.join(work, "perf.data")
+        cmd = [sys.executable, os.path.abspath(__file__), args.surface, "--rays", args.rays,
+               "--res", str(args.res), "--seconds", str(args.seconds), "--child-out", work]
+        subprocess.run(["perf", "record", "-q", "-o", data, "--"] + cmd, check=True,
+                       stdout=subprocess.DEVNULL)
+        ips = subprocess.run(["perf", "script", "-i", data, "-F", "ip"], capture_output=True,
+                             text=True, check=True).stdout.split()
+        report(collections.Counter(int(v, 16) for v in ips), work)
+
+
+if __name__ == "__main__":
+    main()

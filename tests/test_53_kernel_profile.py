@@ -1,0 +1,64 @@
+"""benchmarks/kernel_profile.py's attribution of samples to a kernel's loops.
+
+Oracle: hand-assembled x86-64 machine code whose loops are known by
+construction (a backward ``jne`` closes an inner loop, a backward ``jmp``
+an outer one), with samples placed on chosen instructions, so every share
+is a count divided by the total. Needs ``objdump``; ``perf`` is not run.
+"""
+import collections
+import importlib.util
+import pathlib
+import shutil
+
+import pytest
+
+pytestmark = pytest.mark.skipif(shutil.which("objdump") is None, reason="needs objdump")
+
+BASE = 0x7F0000001000
+
+
+@pytest.fixture(scope="module")
+def kp():
+    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "kernel_profile.py"
+    spec = importlib.util.spec_from_file_location("kernel_profile", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# offset: instruction
+#  0: nop                       (before the loops)
+#  1: nop                       <- outer loop starts
+#  2: nop                       <- inner loop starts
+#  3: nop
+#  4: jne 2      (75 fc)        inner loop: 2..4
+#  6: nop
+#  7: jmp 1      (eb f8)        outer loop: 1..7
+#  9: ret
+CODE = bytes([0x90, 0x90, 0x90, 0x90, 0x75, 0xFC, 0x90, 0xEB, 0xF8, 0xC3])
+
+
+def test01_loops_and_their_shares(kp):
+    """Samples: 1 before the loops, 6 in the inner loop (3 on each of two
+    instructions), 2 in the outer loop outside the inner one, 1 at the
+    return; 2 samples outside the code are not counted."""
+    samples = collections.Counter({BASE + 0: 1, BASE + 2: 3, BASE + 3: 3, BASE + 6: 2,
+                                   BASE + 9: 1, BASE + 100: 2})
+    inside, loops, stretches, ins = kp.analyse(samples, CODE, BASE)
+    assert inside == 10
+    assert [a for a, _ in ins] == [0, 1, 2, 3, 4, 6, 7, 9]
+    assert [(lo, hi) for lo, hi, _ in loops] == [(2, 4), (1, 7)]
+    assert [sh for _, _, sh in loops] == pytest.approx([60.0, 80.0])
+    got = {(lo, hi): (sh, len(part)) for lo, hi, sh, part in stretches}
+    # boundaries: 0, 1, 2, 5 (after the inner jne), 8 (after the outer jmp), 10
+    assert got == {(0, 1): (pytest.approx(10.0), 1), (1, 2): (pytest.approx(0.0), 1),
+                   (2, 5): (pytest.approx(60.0), 3), (5, 8): (pytest.approx(20.0), 2),
+                   (8, 10): (pytest.approx(10.0), 1)}
+
+
+def test02_forward_jumps_close_no_loop(kp):
+    """A forward jump (jne +2 over two nops) is a branch, not a loop."""
+    code = bytes([0x75, 0x02, 0x90, 0x90, 0xC3])
+    inside, loops, stretches, _ = kp.analyse(collections.Counter({BASE + 2: 4}), code, BASE)
+    assert inside == 4 and loops == []
+    assert [(lo, hi, sh) for lo, hi, sh, _ in stretches] == [(0, 5, pytest.approx(100.0))]
