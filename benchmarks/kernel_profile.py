@@ -8,7 +8,7 @@ most of them are attributed to its machine instructions (``objdump``), to
 its loops (a backward jump closes one) and to the straight stretches
 between loop boundaries; each stretch is listed with its share, its
 instruction count, its float64 (``pd``) and float32 (``ps``) vector
-instructions and its gathers.
+floating-point instructions and its gathers.
 
 In the search's kernel the loops come in code order: the first walk (the
 DDA of ``lgshape.grid.Walker.next``), the search loop (``lgshape_search``,
@@ -16,8 +16,14 @@ which holds the walk's DDA again), then the refinement loop. A sample lands
 on the instruction after the one that stalls (a gather's wait shows on the
 next instruction).
 
+The "kernel" is the anonymous executable mapping with the most samples;
+Linux merges neighbouring mappings of the same permissions, so it may hold
+more than one kernel. perf also samples the child's start (imports, the
+compile of its first traces), which falls outside the kernel.
+
 Run: python benchmarks/kernel_profile.py gyroid [--rays incoherent] [--seconds 8]
-(needs ``perf`` and ``objdump``; the cores should be quiet)
+(Linux on x86-64; needs ``perf``, permission to use it, and ``objdump``;
+the cores should be quiet)
 """
 import argparse
 import collections
@@ -32,6 +38,7 @@ import time
 
 
 def child(args):
+    import lgshape                      # first: it points Dr.Jit at its libLLVM
     import drjit as dr
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")
@@ -59,7 +66,8 @@ def child(args):
         k = 0
         for line in open("/proc/self/maps"):
             parts = line.split()
-            if "x" in parts[1] and len(parts) < 6:      # anonymous, executable
+            # anonymous (no path: five fields), readable and executable
+            if parts[1][0] == "r" and parts[1][2] == "x" and len(parts) < 6:
                 lo, hi = (int(v, 16) for v in parts[0].split("-"))
                 with open(os.path.join(args.out, f"code{k}.bin"), "wb") as f:
                     f.write(ctypes.string_at(lo, hi - lo))
@@ -68,13 +76,15 @@ def child(args):
 
 
 def disassemble(path, base):
-    out = subprocess.run(["objdump", "-D", "-b", "binary", "-mi386:x86-64",
+    # (--insn-width: each instruction's bytes on its one line; objdump
+    # otherwise continues one of over 7 bytes on a line of bytes alone)
+    out = subprocess.run(["objdump", "-D", "-b", "binary", "-mi386:x86-64", "--insn-width=16",
                           f"--adjust-vma={base:#x}", path],
                          capture_output=True, text=True, check=True).stdout
     ins = []
     for line in out.splitlines():
         m = re.match(r"\s*([0-9a-f]+):\s+(?:[0-9a-f]{2} )+\s*(.*)", line)
-        if m:
+        if m and m.group(2).strip():
             ins.append((int(m.group(1), 16) - base, m.group(2).strip()))
     return ins
 
@@ -101,8 +111,8 @@ def analyse(samples, code, base):
     loops, cuts = [], {0, end}
     for a, text in ins:
         m = re.match(r"j\w+\s+0x([0-9a-f]+)", text)
-        if m and int(m.group(1), 16) - base <= a:
-            t = int(m.group(1), 16) - base
+        t = int(m.group(1), 16) - base if m else -1
+        if 0 <= t <= a:                  # a backward jump within the code
             loops.append((t, a, share(t, a + 1)))
             cuts |= {t, a + 1}
     cuts = sorted(cuts)
@@ -111,13 +121,24 @@ def analyse(samples, code, base):
     return inside, loops, stretches, ins
 
 
+def _count(part, kind):
+    """Floating-point vector instructions of a kind ('pd': float64, 'ps':
+    float32) by their mnemonics (vaddpd, vfmadd213ps...; the integer ones,
+    vp..., are left out)."""
+    return sum(re.match(rf"v(?!p)\w*{kind}$", t.split()[0]) is not None for t in part)
+
+
 def report(samples, work):
+    maps = os.path.join(work, "maps.txt")
     regions = [(int(k), int(lo, 16), int(hi, 16))
-               for k, lo, hi in (line.split() for line in open(os.path.join(work, "maps.txt")))]
+               for k, lo, hi in (line.split() for line in open(maps))] \
+        if os.path.exists(maps) else []
+    if not regions:
+        sys.exit("kernel_profile: the child wrote no kernel code (did it fail?)")
 
     def count(lo, hi):
         return sum(c for a, c in samples.items() if lo <= a < hi)
-    k, base, end = max(regions, key=lambda r: count(r[1], r[2]))
+    k, base, _ = max(regions, key=lambda r: count(r[1], r[2]))
     with open(os.path.join(work, f"code{k}.bin"), "rb") as f:
         code = f.read()
     inside, loops, stretches, ins = analyse(samples, code, base)
@@ -130,14 +151,15 @@ def report(samples, work):
     for lo, hi, sh, part in stretches:
         if sh > 0.5:
             print(f"  {lo:6x}-{hi:6x} {sh:5.1f}%  {len(part):5d} instructions, "
-                  f"pd {sum('pd ' in t for t in part)}, ps {sum('ps ' in t for t in part)}, "
+                  f"pd {_count(part, 'pd')}, ps {_count(part, 'ps')}, "
                   f"gathers {sum('gather' in t for t in part)}")
     print("hottest instructions (the sample's instruction; the one before it):")
     where = {a: i for i, (a, _) in enumerate(ins)}
     top = sorted(((c, a - base) for a, c in samples.items() if a - base in where), reverse=True)
     for c, a in top[:12]:
         i = where[a]
-        print(f"  {100 * c / inside:5.1f}%  {a:6x}  {ins[i][1][:48]:48s} | {ins[i - 1][1][:48]}")
+        before = ins[i - 1][1][:48] if i > 0 else ""
+        print(f"  {100 * c / inside:5.1f}%  {a:6x}  {ins[i][1][:48]:48s} | {before}")
 
 
 def main():
@@ -158,8 +180,12 @@ def main():
         data = os.path.join(work, "perf.data")
         cmd = [sys.executable, os.path.abspath(__file__), args.surface, "--rays", args.rays,
                "--res", str(args.res), "--seconds", str(args.seconds), "--child-out", work]
-        subprocess.run(["perf", "record", "-q", "-o", data, "--"] + cmd, check=True,
-                       stdout=subprocess.DEVNULL)
+        rec = subprocess.run(["perf", "record", "-o", data, "--"] + cmd,
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if rec.returncode != 0:
+            sys.exit(f"kernel_profile: perf record failed ({rec.returncode}); its output:\n"
+                     f"{rec.stderr[-2000:]}\n(perf may need "
+                     "/proc/sys/kernel/perf_event_paranoid <= 2, or a container that allows it)")
         ips = subprocess.run(["perf", "script", "-i", data, "-F", "ip"], capture_output=True,
                              text=True, check=True).stdout.split()
         report(collections.Counter(int(v, 16) for v in ips), work)
