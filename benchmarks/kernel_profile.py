@@ -21,7 +21,7 @@ Linux merges neighbouring mappings of the same permissions, so it may hold
 more than one kernel. perf also samples the child's start (imports, the
 compile of its first traces), which falls outside the kernel.
 
-Run: python benchmarks/kernel_profile.py gyroid [--rays incoherent] [--seconds 8]
+Run: python benchmarks/kernel_profile.py gyroid [--rays incoherent|shadow] [--seconds 8]
 (Linux on x86-64; needs ``perf``, permission to use it, and ``objdump``;
 the cores should be quiet)
 """
@@ -47,14 +47,21 @@ def child(args):
     from lgshape.trace import Surface
     spec = surfaces.LIBRARY[args.surface]()
     surf = Surface(spec)
-    if args.rays == "camera":
-        o, d = camera.primary_rays(spec.bbox, args.res)
-    else:
+    t_max, any_hit = float("inf"), False
+    if args.rays == "incoherent":
         o, d = benchspeed.incoherent_rays(spec, args.res * args.res)
+    else:
+        o, d = camera.primary_rays(spec.bbox, args.res)
+    if args.rays == "shadow":           # the bench's: from the camera's hits to a light
+        import numpy as np
+        cam = surf.trace(Rays(o, d).o_dr, Rays(o, d).d_dr)
+        o, d, dist, _ = benchspeed.shadow_rays(spec, surf, o, d, np.asarray(cam.t64),
+                                               np.asarray(cam.hit))
+        t_max, any_hit = mi.Float(dist), True
     R = Rays(o, d)
 
     def run():
-        r = surf.trace(R.o_dr, R.d_dr)
+        r = surf.trace(R.o_dr, R.d_dr, t_max=t_max, any_hit=any_hit)
         dr.eval(r.hit, r.t)
         dr.sync_thread()
     for _ in range(3):                  # compile, record the frozen function
@@ -165,7 +172,8 @@ def report(samples, work):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("surface")
-    ap.add_argument("--rays", choices=("camera", "incoherent"), default="camera")
+    ap.add_argument("--rays", choices=("camera", "incoherent", "shadow"), default="camera",
+                    help="shadow: the bench's any-hit rays from the camera rays' hits")
     ap.add_argument("--res", type=int, default=512, help="camera rays per side (incoherent: "
                     "res^2 rays)")
     ap.add_argument("--seconds", type=float, default=8.0)
