@@ -54,7 +54,8 @@ def child(args):
         o, d = camera.primary_rays(spec.bbox, args.res)
     if args.rays == "shadow":           # the bench's: from the camera's hits to a light
         import numpy as np
-        cam = surf.trace(Rays(o, d).o_dr, Rays(o, d).d_dr)
+        C = Rays(o, d)
+        cam = surf.trace(C.o_dr, C.d_dr)
         o, d, dist, _ = benchspeed.shadow_rays(spec, surf, o, d, np.asarray(cam.t64),
                                                np.asarray(cam.hit))
         t_max, any_hit = mi.Float(dist), True
@@ -129,9 +130,9 @@ def analyse(samples, code, base):
 
 
 def _count(part, kind):
-    """Floating-point vector instructions of a kind ('pd': float64, 'ps':
-    float32) by their mnemonics (vaddpd, vfmadd213ps...; the integer ones,
-    vp..., are left out)."""
+    """Vector instructions whose mnemonics end in ``kind`` ('pd': float64,
+    'ps': float32: vaddpd, vfmadd213ps, vmovupd...); those starting vp
+    (integer ones such as vpcmpd, and vpermps) are left out."""
     return sum(re.match(rf"v(?!p)\w*{kind}$", t.split()[0]) is not None for t in part)
 
 
@@ -149,6 +150,8 @@ def report(samples, work):
     with open(os.path.join(work, f"code{k}.bin"), "rb") as f:
         code = f.read()
     inside, loops, stretches, ins = analyse(samples, code, base)
+    if inside == 0:
+        sys.exit("kernel_profile: no sample fell in the kernel's code")
     print(f"the kernel holds {100 * inside / max(sum(samples.values()), 1):.1f}% of "
           f"{sum(samples.values())} samples")
     print("loops (start-end: share of the kernel's samples):")
@@ -175,7 +178,7 @@ def main():
     ap.add_argument("--rays", choices=("camera", "incoherent", "shadow"), default="camera",
                     help="shadow: the bench's any-hit rays from the camera rays' hits")
     ap.add_argument("--res", type=int, default=512, help="camera rays per side (incoherent: "
-                    "res^2 rays)")
+                    "res^2 rays; shadow: from the hits of res^2 camera rays)")
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--child-out", dest="out", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -191,7 +194,8 @@ def main():
         rec = subprocess.run(["perf", "record", "-o", data, "--"] + cmd,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         if rec.returncode != 0:
-            sys.exit(f"kernel_profile: perf record failed ({rec.returncode}); its output:\n"
+            sys.exit(f"kernel_profile: perf record or the profiled child failed "
+                     f"({rec.returncode}); the output:\n"
                      f"{rec.stderr[-2000:]}\n(perf may need "
                      "/proc/sys/kernel/perf_event_paranoid <= 2, or a container that allows it)")
         ips = subprocess.run(["perf", "script", "-i", data, "-F", "ip"], capture_output=True,

@@ -89,3 +89,14 @@ def test04_float_instruction_counts(kp):
             "vpcmpd $0x1,%zmm1,%zmm2,%k1", "vmovupd %zmm5,0x40(%rsp)", "vminps %zmm1,%zmm2,%zmm3",
             "vpgatherdd (%rbx,%zmm10,4),%zmm12{%k6}"]
     assert kp._count(part, "pd") == 2 and kp._count(part, "ps") == 2
+
+
+def test05_jumps_out_of_the_code_close_no_loop(kp):
+    """A backward jmp (rel32) to before the code's start, as at the edge of a
+    dumped mapping, is not a loop: its target is outside the code."""
+    code = bytes([0x90, 0xE9, 0x00, 0xFF, 0xFF, 0xFF, 0xC3])    # 1: jmp -256 past its end
+    inside, loops, stretches, ins = kp.analyse(collections.Counter({BASE + 0: 1, BASE + 1: 1}),
+                                                code, BASE)
+    assert [a for a, _ in ins] == [0, 1, 6]
+    assert inside == 2 and loops == []
+    assert [(lo, hi) for lo, hi, _, _ in stretches] == [(0, 7)]
