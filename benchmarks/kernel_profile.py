@@ -109,13 +109,10 @@ def analyse(samples, code, base):
         f.flush()
         ins = disassemble(f.name, base)
     end = len(code)
-
-    def count(lo, hi):
-        return sum(c for a, c in samples.items() if base + lo <= a < base + hi)
-    inside = count(0, end)
+    inside = _samples_in(samples, base, base + end)
 
     def share(lo, hi):
-        return 100 * count(lo, hi) / max(inside, 1)
+        return 100 * _samples_in(samples, base + lo, base + hi) / max(inside, 1)
     loops, cuts = [], {0, end}
     for a, text in ins:
         m = re.match(r"j\w+\s+0x([0-9a-f]+)", text)
@@ -129,7 +126,12 @@ def analyse(samples, code, base):
     return inside, loops, stretches, ins
 
 
-def _count(part, kind):
+def _samples_in(samples, lo, hi):
+    """The samples at addresses lo <= a < hi."""
+    return sum(c for a, c in samples.items() if lo <= a < hi)
+
+
+def _fp_ops(part, kind):
     """Vector instructions whose mnemonics end in ``kind`` ('pd': float64,
     'ps': float32: vaddpd, vfmadd213ps, vmovupd...); those starting vp
     (integer ones such as vpcmpd, and vpermps) are left out."""
@@ -143,17 +145,14 @@ def report(samples, work):
         if os.path.exists(maps) else []
     if not regions:
         sys.exit("kernel_profile: the child wrote no kernel code (did it fail?)")
-
-    def count(lo, hi):
-        return sum(c for a, c in samples.items() if lo <= a < hi)
-    k, base, _ = max(regions, key=lambda r: count(r[1], r[2]))
+    k, base, _ = max(regions, key=lambda r: _samples_in(samples, r[1], r[2]))
     with open(os.path.join(work, f"code{k}.bin"), "rb") as f:
         code = f.read()
     inside, loops, stretches, ins = analyse(samples, code, base)
     if inside == 0:
         sys.exit("kernel_profile: no sample fell in the kernel's code")
-    print(f"the kernel holds {100 * inside / max(sum(samples.values()), 1):.1f}% of "
-          f"{sum(samples.values())} samples")
+    total = sum(samples.values())
+    print(f"the kernel holds {100 * inside / total:.1f}% of {total} samples")
     print("loops (start-end: share of the kernel's samples):")
     for lo, hi, sh in loops:
         print(f"  {lo:6x}-{hi:6x} {sh:5.1f}%")
@@ -161,7 +160,7 @@ def report(samples, work):
     for lo, hi, sh, part in stretches:
         if sh > 0.5:
             print(f"  {lo:6x}-{hi:6x} {sh:5.1f}%  {len(part):5d} instructions, "
-                  f"pd {_count(part, 'pd')}, ps {_count(part, 'ps')}, "
+                  f"pd {_fp_ops(part, 'pd')}, ps {_fp_ops(part, 'ps')}, "
                   f"gathers {sum('gather' in t for t in part)}")
     print("hottest instructions (the sample's instruction; the one before it):")
     where = {a: i for i, (a, _) in enumerate(ins)}

@@ -7,10 +7,11 @@ that error for one op: given the computed arguments ``a``, their error bounds
 |exact op(exact args) - v| <= e. The bounds are relative to the magnitudes
 actually evaluated (no fixed absolute floor, so k * f has k times the error
 bound of f for any k; exp's, whose result may underflow, adds the smallest
-normal number ``m.tiny`` times its growth over the argument's error), and they are evaluated together with the values, so
-each ray point gets its own bound. Unit roundoff ``m.u`` covers one
-correctly rounded op (+ - * / sqrt, with margin); ``m.eps_t`` covers the
-library's exp, log, sin and cos (64 ulp in float64). The error of computing
+normal number ``m.tiny`` times its growth over the argument's error), and
+they are evaluated together with the values, so each ray point gets its own
+bound. Unit roundoff ``m.u`` covers one correctly rounded op (+ - * / sqrt,
+with margin); ``m.eps_t`` covers the library's exp, log, sin and cos (64
+ulp in float64). The error of computing
 ``e`` itself is absorbed by a final factor (:data:`SAFETY`).
 
 Where an argument's error can reach a singularity of the op (a divisor within

@@ -400,8 +400,9 @@ def test13_negligible_exp(f, rng, monkeypatch):
     the forms and point values computed without it (every lane's exp), bit
     for bit on the other lanes (on LLVM: see below for CUDA); sampled
     float64 values of f inside the forms' ranges (test01's rule) and
-    within the point values' error bounds of the float64 value. Narrow Gaussians: most segments of the
-    box see them below the floor, some do not."""
+    within the point values' error bounds of the float64 value. Narrow
+    Gaussians: most segments of the box see them below the floor, some do
+    not."""
     from lgshape.expr import ops
     from lgshape.expr.evaluate import evaluate_with_error
     e = parse(f)

@@ -88,7 +88,7 @@ def test04_float_instruction_counts(kp):
     part = ["vaddpd %zmm1,%zmm2,%zmm3", "vfmadd213ps %zmm1,%zmm2,%zmm3",
             "vpcmpd $0x1,%zmm1,%zmm2,%k1", "vmovupd %zmm5,0x40(%rsp)", "vminps %zmm1,%zmm2,%zmm3",
             "vpgatherdd (%rbx,%zmm10,4),%zmm12{%k6}"]
-    assert kp._count(part, "pd") == 2 and kp._count(part, "ps") == 2
+    assert kp._fp_ops(part, "pd") == 2 and kp._fp_ops(part, "ps") == 2
 
 
 def test05_jumps_out_of_the_code_close_no_loop(kp):
