@@ -38,6 +38,7 @@ treatment as one built with :mod:`lgshape.primitives`.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -639,6 +640,117 @@ def evaluate_points(tf: TableForm, p, chunk: int = 256) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------
+# Table-local coordinates: a template's offsets x - p folded about a centre
+# ---------------------------------------------------------------------------
+
+#: The local coordinate of each axis in a localized template.
+LOCAL = {"x": "lx", "y": "ly", "z": "lz"}
+
+
+def _offset_operands(n: Expr):
+    """(axis, s_x, other, s_o) where n is s_x * axis + s_o * other with an
+    axis variable x, y or z and a parameter or constant other; else None."""
+    if n.op not in ("add", "sub"):
+        return None
+    a, b = n.args
+    leaf = ("const", "var")
+    if a.op == "var" and a.param in LOCAL and b.op in leaf and b.param not in LOCAL:
+        return a.param, 1.0, b, (1.0 if n.op == "add" else -1.0)
+    if b.op == "var" and b.param in LOCAL and a.op in leaf and a.param not in LOCAL:
+        return b.param, (1.0 if n.op == "add" else -1.0), a, 1.0
+    return None
+
+
+def _offset_nodes(t: Expr):
+    """(node, axis, s_x, other, s_o) for each offset node of t (see
+    :func:`_offset_operands`)."""
+    out = []
+    for n in topological([t]):
+        found = _offset_operands(n)
+        if found is not None:
+            out.append((n, *found))
+    return out
+
+
+def localize_template(t: Expr, ct, columns: bool = True):
+    """t with its offsets rewritten about the table centre ct (x, y, z).
+
+    Each node ``x - p``, ``x + p``, ``p - x`` (p a parameter or constant,
+    x an axis) becomes ``lx - P``, ``lx + P``, ``P - lx`` with the local
+    coordinate lx = x - ct[x] and P = p -/+ ct[x]: the same value, computed
+    from small numbers, where x - p in float32 far from the origin loses the
+    digits of a small part. Other uses of x stay global. A constant p gives
+    a constant P where that is exact in float64; otherwise (and for a
+    parameter) P is a new parameter p{width + i} (with ``columns``; without,
+    the node stays global). Returns (template, offsets): per new parameter,
+    (source column or constant, axis, s_x, s_o), P = s_o p + s_x ct[axis]."""
+    width = 1 + max([int(n.param[1:]) for n in topological([t])
+                     if n.op == "var" and re.fullmatch(r"p\d+", n.param)], default=-1)
+    local = {id(n): f for n, *f in _offset_nodes(t)}
+    made, offsets, out = {}, [], {}
+    for n in topological([t]):
+        if id(n) in local:
+            axis, sx, other, so = local[id(n)]
+            lx, c = var(LOCAL[axis]), float(ct["xyz".index(axis)])
+            P = None
+            if other.op == "const":
+                v, e = _two_sum(so * other.param, sx * c)
+                if e == 0.0:
+                    P = const(float(v))
+            if P is None and columns:
+                src = int(other.param[1:]) if other.op == "var" else float(other.param)
+                key = (other.op, src, axis, sx, so)
+                if key not in made:
+                    made[key] = param(width + len(offsets))
+                    offsets.append((src, axis, sx, so))
+                P = made[key]
+            if P is not None:
+                # s_x x + s_o p = s_x lx + (s_o p + s_x ct): the node's op kept
+                out[id(n)] = N.add(lx, P) if sx > 0 else N.sub(P, lx)
+                continue
+        if n.op in ("const", "named", "var"):
+            out[id(n)] = n
+        else:
+            args = [out[id(a)] for a in n.args]
+            out[id(n)] = n if all(a is b for a, b in zip(args, n.args)) else _rebuild(n, args)
+    return out[id(t)], offsets
+
+
+def table_centre(tf: "TableForm", lo, hi) -> np.ndarray:
+    """Per axis, the centre of the box [lo, hi] rounded to a multiple of a
+    coarse power of two S: the largest one at most half the box's largest
+    extent, and at least the largest float32 ulp of the offsets' parameters
+    and constants. A float32 parameter p is then a multiple of ulp(p) as
+    ct is, so p - ct is exact in float32 wherever |p - ct| is within about
+    |p| (the box near p: Sterbenz's lemma), and a float64 constant K - ct
+    exact in float64; the local coordinates stay within the box's size of 0
+    (ct is within S / 2 of the centre). Near the origin ct is 0."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    c = 0.5 * (lo + hi)
+    half = 0.5 * float((hi - lo).max())
+    S = np.full(3, 2.0 ** math.floor(math.log2(half)) if half > 0 else 0.0)
+    templates = [(g.template, g.params) for _, g in tf.groups] + [(tf.outer, None)]
+    for t, params in templates:
+        for _, axis, _, other, _ in _offset_nodes(t):
+            if other.op == "const":
+                big = abs(other.param)
+            elif params is not None and len(params):
+                big = float(np.abs(params[:, int(other.param[1:])]).max())
+            else:
+                continue
+            i = "xyz".index(axis)
+            S[i] = max(S[i], float(np.spacing(np.float32(big))))
+    return np.where(S > 0, np.round(c / np.where(S > 0, S, 1.0)) * S, c)
+
+
+def _two_sum(a, b):
+    """(s, e) with s = fl(a + b) and a + b = s + e exactly (Knuth)."""
+    s = a + b
+    bb = s - a
+    return s, (a - (s - bb)) + (b - bb)
+
+
+# ---------------------------------------------------------------------------
 # Device side (Dr.Jit): per-cell row ranges and the evaluations over them
 # ---------------------------------------------------------------------------
 
@@ -653,15 +765,24 @@ class DeviceTables:
     the brick map (brick * 64 + bit); slot ``n_slots`` holds every row (for
     points outside the occupied cells).
 
-    The search works in coordinates local to the box centre c; templates are
-    evaluated at x = x_local + c with c an opaque value (its rounding in the
-    error bound and the intervals), not folded into the templates, so the
-    compiled code depends on the templates only: another table of the same
-    templates (other rows, values, box) reuses the compiled kernels.
+    The search works in coordinates u local to the box centre c. Each
+    template's offsets ``x - p`` are rewritten about a table centre ct near
+    c (:func:`localize_template`, :func:`table_centre`): ``lx - P`` with
+    lx = u + (c - ct) and P = p - ct per row, computed on the host exactly
+    or with its error bound carried. So x - p is formed from small numbers
+    and a part 1e6 from the origin is solved to the same relative accuracy
+    as one at the origin. Other uses of x take x = u + c. The centres are
+    opaque values (their roundings in the error bounds and the intervals),
+    not folded into the templates, so the compiled code depends on the
+    templates only: another table of the same templates (other rows,
+    values, box) reuses the compiled kernels.
 
     Its fields are its Dr.Jit arrays (a frozen function's inputs)."""
     centre64: list
     centre32: list
+    local64: list
+    local32: list
+    local_err: list
     groups: list
 
     def __init__(self, tf: TableForm, rows: CellRows, grid, centre, Float):
@@ -675,12 +796,15 @@ class DeviceTables:
         self.up = rows.up
         self.n_slots = int(len(grid.bricks) // 2) * (8 ** (2 - rows.up))
         c64 = np.asarray(centre, np.float64)
-        c32 = c64.astype(np.float32)
         self.centre64 = [dr.opaque(self.Float64, float(v)) for v in c64]
-        self.centre32 = [(dr.opaque(Float, float(np.nextafter(c, np.float32(-np.inf)) if c > v else c)),
-                          dr.opaque(Float, float(np.nextafter(c, np.float32(np.inf)) if c < v else c)))
-                         for c, v in zip(c32, c64)]
-        seeds = {"x": DX, "y": DY, "z": DZ}
+        self.centre32 = [_enclose32(Float, v) for v in c64]
+        # the local coordinates lx = x - c_t of the localized templates
+        ct = table_centre(tf, grid.lo, grid.hi)
+        delta, e = _two_sum(c64, -ct)           # exact where ct is near c (Sterbenz)
+        self.local64 = [dr.opaque(self.Float64, float(v)) for v in delta]
+        self.local_err = [dr.opaque(self.Float64, abs(float(b))) if b != 0 else 0.0 for b in e]
+        self.local32 = [_enclose32(Float, v, abs(float(b))) for v, b in zip(delta, e)]
+        seeds = {"x": DX, "y": DY, "z": DZ, "lx": DX, "ly": DY, "lz": DZ}
         self.groups = []
         for gi, (j, g) in enumerate(tf.groups):
             slot = slot_of_cell[rows.pair_cell[gi]]
@@ -689,28 +813,53 @@ class DeviceTables:
             prow = np.concatenate([prow, np.arange(g.rows)])         # the all-rows slot
             start = np.searchsorted(slot, np.arange(self.n_slots + 1)).astype(np.int64)
             start = np.concatenate([start, [len(prow)]])
-            t = g.template
+            t, offsets = localize_template(g.template, ct)
             P = g.params[prow]
-            exact = bool(np.all(P.astype(np.float32).astype(np.float64) == P))
-            p32 = P.astype(np.float32)
-            lo32 = np.where(p32.astype(np.float64) > P, np.nextafter(p32, np.float32(-np.inf)), p32)
-            hi32 = np.where(p32.astype(np.float64) < P, np.nextafter(p32, np.float32(np.inf)), p32)
+            cols, bound = [P[:, q] for q in range(g.width)], [0.0] * g.width
+            for src, axis, sx, so in offsets:
+                p = np.full(len(prow), src) if isinstance(src, float) else P[:, src]
+                s, e = _two_sum(so * p, sx * ct["xyz".index(axis)])
+                cols.append(s)
+                bound.append(float(np.abs(e).max(initial=0.0)))
+            P = np.column_stack(cols) if cols else P
+            width = P.shape[1]
+            bound = np.array(bound)
+            exact = bool(np.all(P.astype(np.float32).astype(np.float64) == P)) and not bound.any()
+            # float32 enclosures of each parameter's exact value P +- bound
+            lo64 = np.where(bound > 0, np.nextafter(P - bound, -np.inf), P)
+            hi64 = np.where(bound > 0, np.nextafter(P + bound, np.inf), P)
+            lo32, hi32 = _round_down32(lo64), _round_up32(hi64)
             self.groups.append(_DeviceGroup(
                 aggregate=j, template=t, g=derivative(t, seeds),
                 start=UInt32(start.astype(np.uint32)),
                 # float32 values are gathered once, as float32, for both
                 p64=None if exact else [self.Float64(np.ascontiguousarray(P[:, q]))
-                                        for q in range(g.width)],
+                                        for q in range(width)],
                 p32=[(Float(np.ascontiguousarray(lo32[:, q])),
                       None if exact else Float(np.ascontiguousarray(hi32[:, q])))
-                     for q in range(g.width)],
-                width=g.width))
+                     for q in range(width)],
+                err=[dr.opaque(self.Float64, float(b)) if b > 0 else None for b in bound],
+                width=width))
         self.aggregates = tf.aggregates
-        self.outer = tf.outer
+        self.outer, _ = localize_template(tf.outer, ct, columns=False)
         gseeds = dict(seeds, **{f"A{j}": var(f"gA{j}") for j in range(len(tf.aggregates))})
         self.outer_g = derivative(self.outer, gseeds)
         self.combines = [(a.combine, derivative(a.combine, {"a": var("ga"), "b": var("gb")}))
                          for a in tf.aggregates]
+
+    def _coordinates(self, env, err, m64):
+        """env and err with the box-local x, y, z made global (x = u + c) and
+        the table-local lx, ly, lz (lx = u + (c - c_t)), with their roundings."""
+        import drjit as dr
+        env, err = dict(env), dict(err)
+        for i, v in enumerate("xyz"):
+            u, eu = env[v], err.get(v, 0.0)
+            lv = LOCAL[v]
+            env[lv] = u + self.local64[i]
+            err[lv] = eu + m64.u * dr.abs(env[lv]) + self.local_err[i]
+            env[v] = u + self.centre64[i]
+            err[v] = eu + m64.u * dr.abs(env[v])
+        return env, err
 
     # -- ranges ---------------------------------------------------------------
     def ranges(self, slot, active):
@@ -738,10 +887,7 @@ class DeviceTables:
         from .expr import evaluate, evaluate_with_error
         Float64 = self.Float64
         dirs = directions or [{k: env[k] for k in ("dx", "dy", "dz")}]
-        env, err = dict(env), dict(err)
-        for i, v in enumerate("xyz"):        # local -> global coordinates
-            env[v] = env[v] + self.centre64[i]
-            err[v] = err.get(v, 0.0) + m64.u * dr.abs(env[v])
+        env, err = self._coordinates(env, err, m64)
         nd = len(dirs)
         vals, errs, grads = {}, {}, [dict() for _ in dirs]
         for j, agg in enumerate(self.aggregates):
@@ -759,6 +905,8 @@ class DeviceTables:
                     for q in range(grp.width):
                         penv[f"p{q}"] = dr.gather(Float64, grp.p64[q], i) if grp.p64 else \
                             Float64(dr.gather(self.Float, grp.p32[q][0], i))
+                        if grp.err[q] is not None:
+                            perr[f"p{q}"] = grp.err[q]
                     tv, te = evaluate_with_error(grp.template, penv, perr, m64, safety=False)
                     tg = [evaluate(grp.g, {**penv, **dd}, m64) for dd in dirs]
                     cv, ce = evaluate_with_error(comb, {"a": v, "b": tv}, {"a": ev, "b": te}, m64,
@@ -799,11 +947,9 @@ class DeviceTables:
         from .expr.quadratic import Quad, evaluate_quadratic, quad_env, quad_range
         Float, Float64 = self.Float, self.Float64
         dd = {k: env[k] for k in ("dx", "dy", "dz")}
-        env, err = dict(env), dict(err)
-        for i, v in enumerate("xyz"):        # local -> global coordinates
-            env[v] = env[v] + self.centre64[i]
-            err[v] = err.get(v, 0.0) + m64.u * dr.abs(env[v])
-        seg, qenv0 = quad_env(m, e32, d32, lo, hi, self.centre32)
+        env, err = self._coordinates(env, err, m64)
+        seg, qenv0 = quad_env(m, e32, d32, lo, hi, self.centre32,
+                              local={LOCAL[v]: self.local32[i] for i, v in enumerate("xyz")})
         n = dr.width(lo)
         vals, errs, grads, avals, agrads = {}, {}, {}, {}, {}
         for j, agg in enumerate(self.aggregates):
@@ -825,6 +971,8 @@ class DeviceTables:
                             else Float64(a)
                         qenv[f"p{q}"] = a if phi is None else \
                             iv.Interval(a, dr.gather(Float, phi, i))
+                        if grp.err[q] is not None:
+                            perr[f"p{q}"] = grp.err[q]
                     # the point
                     tv, te = evaluate_with_error(grp.template, penv, perr, m64, safety=False)
                     tg = evaluate(grp.g, {**penv, **dd}, m64)
@@ -862,7 +1010,7 @@ class DeviceTables:
                                            dr.select(first, 0.0, rg.hi))
         F, eF = evaluate_with_error(self.outer, {**env, **vals}, {**err, **errs}, m64)
         g = evaluate(self.outer_g, {**env, **vals, **dd, **grads}, m64)
-        ienv = {v: quad_range(seg, qenv0[v]) for v in "xyz"}
+        ienv = {v: quad_range(seg, qenv0[v]) for v in ("x", "y", "z", *LOCAL.values())}
         ienv.update({k: qenv0[k] for k in ("dx", "dy", "dz")})
         Fi, gi = evaluate_interval([self.outer, self.outer_g], {**ienv, **avals, **agrads}, m)
         return F, eF, g, (gi.lo, gi.hi, Fi.lo, Fi.hi)
@@ -876,4 +1024,24 @@ class _DeviceGroup:
     start: object
     p64: list
     p32: list
+    err: list            # error bounds of the float64 parameters (None: exact)
     width: int
+
+
+def _round_down32(v):
+    v32 = v.astype(np.float32)
+    return np.where(v32.astype(np.float64) > v, np.nextafter(v32, np.float32(-np.inf)), v32)
+
+
+def _round_up32(v):
+    v32 = v.astype(np.float32)
+    return np.where(v32.astype(np.float64) < v, np.nextafter(v32, np.float32(np.inf)), v32)
+
+
+def _enclose32(Float, v: float, e: float = 0.0):
+    """(lo, hi): opaque float32 values enclosing v +- e (float64)."""
+    import drjit as dr
+    lo, hi = np.array([v]), np.array([v])
+    if e > 0:
+        lo, hi = np.nextafter(lo - e, -np.inf), np.nextafter(hi + e, np.inf)
+    return (dr.opaque(Float, float(_round_down32(lo)[0])), dr.opaque(Float, float(_round_up32(hi)[0])))

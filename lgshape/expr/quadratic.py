@@ -113,17 +113,21 @@ def _plain(m, v) -> Quad:
     return Quad(v, z, z, m.abs(v) * m.eps + m.tiny)
 
 
-def quad_env(m, e32, d32, lo, hi, offsets=None):
+def quad_env(m, e32, d32, lo, hi, offsets=None, local=None):
     """The segment e + [lo, hi] d of a ray (lists of three arrays e and d)
     as a :class:`Segment` about its middle (computed in the arrays'
     precision; r rounded up so that [tm - r, tm + r] covers [lo, hi]) and
     the forms of its coordinates, plus the plain direction dx, dy, dz;
-    ``offsets``: intervals added to the coordinates (a grid centre)."""
+    ``offsets``: intervals added to the coordinates (a grid centre);
+    ``local``: more coordinates by name, each with its own offset interval
+    (in x, y, z order)."""
     tm = 0.5 * (lo + hi)
     r = m.maximum(tm - lo, hi - tm) * (1.0 + 4.0 * m.u)
     seg = Segment(m, r)
     env = {v: coordinate(seg, e32[i], d32[i], tm, None if offsets is None else offsets[i])
            for i, v in enumerate("xyz")}
+    for i, (name, off) in enumerate((local or {}).items()):
+        env[name] = coordinate(seg, e32[i], d32[i], tm, off)
     env.update({"d" + v: d32[i] for i, v in enumerate("xyz")})
     return seg, env
 
