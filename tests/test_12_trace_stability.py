@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 import lgshape
-from lgshape import baselines, parse
+from lgshape import parse
+from lgshape.bench import baselines
 from lgshape.expr import evaluate, gradient, hessian
 from lgshape.reference import clip_to_box, first_sign_change, polynomial_roots
 from lgshape.surfaces import SPIKE_AXES

@@ -251,12 +251,12 @@ def test05_scale_worker_and_report():
     (analytic nearest ray-sphere entry) finds 0 wrong rays, the blend's
     (a sign change of the whole f at every hit) too; the report has its
     table and the targets."""
-    from lgshape import benchscale
-    recs = [benchscale.worker(kind, 10, "tables", 48, 1) for kind in ("union", "blend")]
+    from lgshape.bench import scale
+    recs = [scale.worker(kind, 10, "tables", 48, 1) for kind in ("union", "blend")]
     for r in recs:
         assert r["wrong"] == 0 and r["capped"] == 0 and r["hits"] > 100, r
         assert r["rows_per_cell"] >= 1.0 and r["steady_s"] > 0
     recs.append(dict(recs[0], n=1000))      # the verdicts need an N = 1000 row
-    text = "\n".join(benchscale.report(recs, 48))
+    text = "\n".join(scale.report(recs, 48))
     assert "## Scale" in text and "| union | 10 | tables |" in text
     assert "build at N=1000 (s)" in text

@@ -1,7 +1,7 @@
-"""Temporal stability (:mod:`lgshape.benchtemporal`) and the animation scenes.
+"""Temporal stability (:mod:`lgshape.bench.temporal`) and the animation scenes.
 
 Oracles: the float64 reference of the temporal benchmark,
-:func:`lgshape.benchtemporal.spikes_reference` (a windowed float64 scan of
+:func:`lgshape.bench.temporal.spikes_reference` (a windowed float64 scan of
 the spikes' f with bisection), checked here against the plain dense float64
 scan :func:`lgshape.stability.nearest_root` (40000 steps along the whole ray
 in the box), and used as the oracle of the quick run: lgshape has no wrong
@@ -22,7 +22,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from lgshape import benchtemporal as bt
+from lgshape.bench import temporal as bt
 from lgshape import cli, stability
 
 FIELDS = ("method", "setting", "mrays_per_s", "wrong_feature_per_frame",

@@ -1,4 +1,4 @@
-"""The speed section of the benchmark (lgshape.benchspeed).
+"""The speed section of the benchmark (lgshape.bench.speed).
 
 Oracles: analytic ray-sphere intersection (the nearest entry t = -b -
 sqrt(b^2 - c) of a unit-direction ray into the unit sphere) for lgshape's
@@ -15,7 +15,7 @@ import pytest
 
 import lgshape
 from conftest import JIT
-from lgshape import benchspeed as S
+from lgshape.bench import speed as S
 from lgshape.surfaces import sphere
 
 
@@ -91,21 +91,21 @@ def test01_quick_run_records(quick):
 def test07_timed_together_interleaves_rounds():
     """Oracle: the order of the runners' calls, recorded by the runners; the
     paired ratio by hand (median of per-round quotients)."""
-    from lgshape import bench
+    from lgshape.bench import common
     calls = []
 
     def runner(key):
         def run():
             calls.append(key)
             return (JIT.Float([1.0]),)
-        return bench.Runner(key, "", run, lambda out: key, lambda t: None, 0, 0.0)
-    res = bench.timed_together({k: runner(k) for k in "abc"}, repeats=4)
+        return common.Runner(key, "", run, lambda out: key, lambda t: None, 0, 0.0)
+    res = common.timed_together({k: runner(k) for k in "abc"}, repeats=4)
     # warm-up and calibration of each, then rounds in rotated order
     assert calls == list("aabbcc") + list("abc") + list("bca") + list("cab") + list("abc")
     for k in "abc":
         out, med, samples = res[k]
         assert out == k and len(samples) == 4 and med == float(np.median(samples))
-    assert bench.paired_ratio([2.0, 9.0, 3.0], [1.0, 3.0, 3.0]) == 2.0
+    assert common.paired_ratio([2.0, 9.0, 3.0], [1.0, 3.0, 3.0]) == 2.0
 
 
 def test02_quick_run_render_and_latency(quick):
@@ -194,7 +194,7 @@ def test05_mesh_and_scene_rewrite(tmp_path):
     """The marching-cubes mesh's faces point towards f > 0 (outwards on the
     sphere); the cornell scene's lgsurface becomes a ply shape with the same
     transform and BSDF, and lg_path becomes path."""
-    from lgshape.bench import sample_grid
+    from lgshape.bench.baselines import sample_grid
     spec = sphere()
     v, faces = S.marching_mesh(spec, sample_grid(spec, 24))
     tri = v[faces]

@@ -1,4 +1,4 @@
-"""benchmarks/kernel_profile.py's attribution of samples to a kernel's loops.
+"""lgshape.bench.kernel_profile's attribution of samples to a kernel's loops.
 
 Oracle: hand-assembled x86-64 machine code whose loops are known by
 construction (a backward ``jne`` closes an inner loop, a backward ``jmp``
@@ -6,8 +6,6 @@ an outer one), with samples placed on chosen instructions, so every share
 is a count divided by the total. Needs ``objdump``; ``perf`` is not run.
 """
 import collections
-import importlib.util
-import pathlib
 import shutil
 
 import pytest
@@ -19,11 +17,8 @@ BASE = 0x7F0000001000
 
 @pytest.fixture(scope="module")
 def kp():
-    path = pathlib.Path(__file__).parents[1] / "benchmarks" / "kernel_profile.py"
-    spec = importlib.util.spec_from_file_location("kernel_profile", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    from lgshape.bench import kernel_profile
+    return kernel_profile
 
 
 # offset: instruction

@@ -9,7 +9,8 @@ frames of ``FULL.degrees_per_frame`` each, one primary ray through the centre
 of each pixel. At ``FULL.res`` x ``FULL.res`` a pixel is about 0.02 wide at
 the object, so the spikes are a pixel thick at their base and a tenth of one
 near their tips. Every method traces the rays of all frames in one batch,
-with the runners of :mod:`lgshape.bench` (lgshape; sphere tracing with three
+with the runners of :mod:`lgshape.bench.common` and
+:mod:`lgshape.bench.baselines` (lgshape; sphere tracing with three
 Lipschitz constants; fixed-step marching; Mitsuba's sdfgrid and a
 marching-cubes mesh of f / |grad f| sampled on a grid, built once: the
 object is rigid, the camera moves).
@@ -50,8 +51,9 @@ dense scan. It is the same for every method.
   method's toggle count minus the oracle's, per frame pair (may be < 0).
 
 :func:`run` returns a JSON-ready dict, :func:`chart` draws it, :func:`report`
-writes its markdown section. Standalone: ``python -m lgshape.benchtemporal
---out DIR [--quick]`` (also writes an image strip of four frames).
+writes its markdown section. Standalone: ``python -m lgshape.bench.temporal
+--out DIR [--quick]`` (also writes an image strip of four frames). Mitsuba
+and matplotlib are imported where they are used.
 """
 from __future__ import annotations
 
@@ -65,10 +67,14 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from . import stability
-from .camera import look_rays
-from .reference import clip_to_box
-from .surfaces import SPIKE_AXES, Implicit, spikes
+from .. import stability
+from ..camera import look_rays
+from ..expr import evaluate, gradient
+from ..reference import clip_to_box
+from ..surfaces import SPIKE_AXES, Implicit, spikes
+from .baselines import sampling_runners, sphere_runner
+from .common import METHOD_STYLE, VARIANT, Rays, finite, global_L, lgshape_runner, pct, \
+    stderr_log, timed
 
 #: Spike parameters of the animation (the library defaults).
 CORE, HEIGHT, WIDTH = 0.5, 1.0, 0.01
@@ -97,7 +103,7 @@ class TemporalConfig:
     st_sample_grid: int         # grid on which the "sampled" L is taken
     march_steps: tuple          # fixed steps, as divisions of the diagonal
     grid_res: tuple             # sdfgrid / marching-cubes samples per axis
-    repeats: int                # timed repeats (bench.timed)
+    repeats: int                # timed repeats (lgshape.bench.common.timed)
 
 
 FULL = TemporalConfig(res=128, frames=24, degrees_per_frame=1.5, azimuth0=15.0, elevation=20.0,
@@ -251,7 +257,6 @@ def sampled_lipschitz(spec: Implicit, res: int) -> float:
     """max |grad f| over res^3 grid vertices spanning the box: what an
     estimate from samples gives; not a bound (the spikes, thinner than the
     spacing, fall between the vertices)."""
-    from .expr import evaluate, gradient
     lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
     ax = [np.linspace(lo[i], hi[i], res) for i in range(3)]
     Z, Y, X = np.meshgrid(ax[2], ax[1], ax[0], indexing="ij")
@@ -261,26 +266,20 @@ def sampled_lipschitz(spec: Implicit, res: int) -> float:
 
 
 def runners(spec, rays, cfg: TemporalConfig):
-    """(label, make) for every method and setting, built lazily (each make()
-    returns a :class:`lgshape.bench.Runner`)."""
-    from . import bench
-    yield lambda: bench.lgshape_runner(spec, rays, "interval", 6)
-    L_iv = bench.global_L(spec)
+    """Every method and setting, built lazily (each item's make() returns a
+    :class:`lgshape.bench.common.Runner`)."""
+    yield lambda: lgshape_runner(spec, rays, "interval", 6)
+    L_iv = global_L(spec)
     L_an = analytic_lipschitz(spec)
     L_sm = sampled_lipschitz(spec, cfg.st_sample_grid)
     for L, how in ((L_iv, "interval L"), (L_an, "analytic L"),
                    (L_sm, f"L sampled on {cfg.st_sample_grid}^3")):
         def make(L=L, how=how):
-            r = bench.sphere_runner(spec, rays, cfg.st_eps, 1.0, L=L)
+            r = sphere_runner(spec, rays, cfg.st_eps, 1.0, L=L)
             r.setting = f"{how} = {L:.3g}, eps {cfg.st_eps:g} diag"
             return r
         yield make
-    for n in cfg.march_steps:
-        yield lambda n=n: bench.march_runner(spec, rays, n)
-    for res in cfg.grid_res:
-        samples = bench.Samples(spec, res)
-        yield lambda samples=samples: bench.sdfgrid_runner(spec, rays, samples)
-        yield lambda samples=samples: bench.mesh_runner(spec, rays, samples)
+    yield from sampling_runners(spec, rays, cfg.march_steps, cfg.grid_res)
 
 
 # ---- Metrics -------------------------------------------------------------------------
@@ -340,9 +339,8 @@ def run(log=None, quick=False, strip=None, cfg: TemporalConfig | None = None) ->
     method and setting, the oracle first). ``strip``: a PNG path for an image
     strip of four consecutive frames (:func:`strip_image`)."""
     import mitsuba as mi
-    from . import bench
     if mi.variant() is None:
-        mi.set_variant(bench.VARIANT)
+        mi.set_variant(VARIANT)
     log = log or (lambda msg: None)
     cfg = cfg or (QUICK if quick else FULL)
     t_start = time.perf_counter()
@@ -367,10 +365,10 @@ def run(log=None, quick=False, strip=None, cfg: TemporalConfig | None = None) ->
     oracle_rec.update(m)
     records = [oracle_rec]
     traces = {"oracle": (ref_t, ref_hit)}
-    rays = bench.Rays(o, d)
+    rays = Rays(o, d)
     for make in runners(spec, rays, cfg):
         runner = make()
-        res, seconds = bench.timed(runner, cfg.repeats, 0.0)
+        res, seconds = timed(runner, cfg.repeats, 0.0)
         t = np.where(res["hit"], res["t"], np.inf)
         metrics, _ = judge_frames(t, res["hit"], ref_t, o, d, diag, cfg.frames)
         rec = {"method": runner.method, "setting": runner.setting,
@@ -391,7 +389,7 @@ def run(log=None, quick=False, strip=None, cfg: TemporalConfig | None = None) ->
             "feature_radius": FEATURE_RADIUS, "tolerance": stability.TOLERANCE,
             "pixel_size": 2 * cfg.distance * math.tan(math.radians(cfg.fov) / 2) / cfg.res,
             "spike_thickness": {f"{r:g}": spike_thickness(r) for r in (0.6, 0.8, 1.0, 1.1)},
-            "oracle": ("float64 windowed scan of f (lgshape.benchtemporal.spikes_reference): "
+            "oracle": ("float64 windowed scan of f (lgshape.bench.temporal.spikes_reference): "
                        f"step {cfg.scan_step:g} inside the core shell and the cylinders "
                        f"rho^2 <= {WINDOW_K:g} width^2 around the spike lines, first sign "
                        "change bisected"),
@@ -412,7 +410,6 @@ def _label(r):
 
 
 def _style(r, i):
-    from .bench import METHOD_STYLE
     color, marker = METHOD_STYLE.get(r["method"], ("black", "o"))
     return color, marker, ("-", "--", ":", "-.")[i % 4]
 
@@ -555,15 +552,15 @@ def summary(results) -> list[str]:
                    if r["wrong_feature_max"] == 0 else
                    f"- lgshape (`{r['setting']}`): thin-feature pixels wrong in "
                    f"{r['frames_with_wrong_feature']:.0%} of the frames (at most "
-                   f"{_pct(r['wrong_feature_max'], 1)} of them) ")
-        out[-1] += (f"({_pct(r['wrong_pixel_mean'], 3)} of all pixels), flicker "
+                   f"{pct(r['wrong_feature_max'], 1)} of them) ")
+        out[-1] += (f"({pct(r['wrong_pixel_mean'], 3)} of all pixels), flicker "
                     f"{r['flicker']:.1f} pixels per frame pair, {r['mrays_per_s']:.2f} Mrays/s.")
     for method in dict.fromkeys(r["method"] for r in recs if r["method"] != "lgshape"):
         best = min((r for r in recs if r["method"] == method),
                    key=lambda r: (r["wrong_feature_mean"], r["flicker"]))
         out.append(f"- {method}, best setting (`{best['setting']}`): thin-feature pixels wrong in "
                    f"{best['frames_with_wrong_feature']:.0%} of the frames, "
-                   f"{_pct(best['wrong_feature_mean'], 1)} of them per frame on average, flicker "
+                   f"{pct(best['wrong_feature_mean'], 1)} of them per frame on average, flicker "
                    f"{best['flicker']:.1f} pixels per pair, {best['mrays_per_s']:.2f} Mrays/s.")
     for r in recs:
         if r["method"].startswith("sphere_trace") and r["wrong_pixel_mean"] > 0.5:
@@ -571,14 +568,10 @@ def summary(results) -> list[str]:
                        "at the box: there |f| / L is already below eps, so its image is the box "
                        "(its flicker is the box's silhouette moving).")
         elif r["method"].startswith("sphere_trace") and (r.get("capped_fraction") or 0) > 0.05:
-            out.append(f"- `{r['method']} {r['setting']}`: {_pct(r['capped_fraction'], 0)} of the "
+            out.append(f"- `{r['method']} {r['setting']}`: {pct(r['capped_fraction'], 0)} of the "
                        f"rays reach the 1024-step cap (a valid L makes its steps |f| / "
                        f"{r.get('lipschitz_L') or float('nan'):.3g}), and count as misses.")
     return out
-
-
-def _pct(v, digits=2):
-    return "–" if v is None else f"{100 * v:.{digits}f}%"
 
 
 def report(results, chart_path="charts/temporal.png", strip_path=None) -> list[str]:
@@ -625,16 +618,17 @@ def report(results, chart_path="charts/temporal.png", strip_path=None) -> list[s
         if r["method"] == "oracle":
             continue
         L.append(f"| {r['method']} | {r['setting']} | {r['mrays_per_s']:.2f} | "
-                 f"{_pct(r['frames_with_wrong_feature'], 0)} | {_pct(r['wrong_feature_mean'], 1)} "
-                 f"({_pct(r['wrong_feature_max'], 1)}) | {_pct(r['wrong_pixel_mean'], 3)} | "
+                 f"{pct(r['frames_with_wrong_feature'], 0)} | {pct(r['wrong_feature_mean'], 1)} "
+                 f"({pct(r['wrong_feature_max'], 1)}) | {pct(r['wrong_pixel_mean'], 3)} | "
                  f"{r['flicker']:.1f} | {r['missed_toggles']:.1f} | {r['excess_toggles']:+.1f} | "
-                 f"{_pct(r.get('capped_fraction'), 1)} |")
+                 f"{pct(r.get('capped_fraction'), 1)} |")
     L.append("")
     if not cfg["repeats"]:
         L.append("(Quick run: a time is one trace, compilation included.)\n")
     else:
-        L.append("Times: one trace of all frames' rays after a warm-up (`lgshape.bench.timed`), "
-                 "the rays and the acceleration structure already built.\n")
+        L.append("Times: one trace of all frames' rays after a warm-up "
+                 "(`lgshape.bench.common.timed`), the rays and the acceleration structure "
+                 "already built.\n")
     if chart_path:
         L.append(f"![wrong thin-feature pixels per frame, flicker]({chart_path})\n")
     if strip_path:
@@ -645,25 +639,20 @@ def report(results, chart_path="charts/temporal.png", strip_path=None) -> list[s
 # ---- Command line ---------------------------------------------------------------------
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m lgshape.benchtemporal",
+    p = argparse.ArgumentParser(prog="python -m lgshape.bench.temporal",
                                 description="The temporal-stability section of the benchmark.")
     p.add_argument("--quick", action="store_true")
     p.add_argument("--out", required=True)
     args = p.parse_args(argv)
     import mitsuba as mi
-    from .bench import VARIANT
     mi.set_variant(VARIANT)
-    t_start = time.perf_counter()
-
-    def log(msg):
-        print(f"[{time.perf_counter() - t_start:6.1f} s] {msg}", file=sys.stderr, flush=True)
+    log = stderr_log()
     os.makedirs(args.out, exist_ok=True)
     strip = os.path.join(args.out, "temporal_strip.png")
     results = run(log, quick=args.quick, strip=strip)
     chart(results, os.path.join(args.out, "temporal.png"))
     with open(os.path.join(args.out, "temporal.json"), "w") as fh:
-        from .bench import _finite
-        json.dump(_finite(results), fh, indent=1, allow_nan=False)
+        json.dump(finite(results), fh, indent=1, allow_nan=False)
     with open(os.path.join(args.out, "TEMPORAL.md"), "w") as fh:
         fh.write("\n".join(report(results, "temporal.png", "temporal_strip.png")) + "\n")
     log(f"wrote {args.out}/temporal.json, temporal.png, temporal_strip.png, TEMPORAL.md")

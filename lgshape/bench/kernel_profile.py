@@ -21,9 +21,10 @@ Linux merges neighbouring mappings of the same permissions, so it may hold
 more than one kernel. perf also samples the child's start (imports, the
 compile of its first traces), which falls outside the kernel.
 
-Run: python benchmarks/kernel_profile.py gyroid [--rays incoherent|shadow] [--seconds 8]
+Run: python -m lgshape.bench.kernel_profile gyroid [--rays incoherent|shadow] [--seconds 8]
 (Linux on x86-64; needs ``perf``, permission to use it, and ``objdump``;
-the cores should be quiet)
+the cores should be quiet). Dr.Jit and Mitsuba are imported by the child
+alone.
 """
 import argparse
 import collections
@@ -36,28 +37,30 @@ import sys
 import tempfile
 import time
 
+import numpy as np
+
+from ..camera import primary_rays
+from ..surfaces import LIBRARY
+from ..trace import Surface
+from .common import VARIANT, Rays
+from .speed import incoherent_rays, shadow_rays
+
 
 def child(args):
-    import lgshape                      # first: it points Dr.Jit at its libLLVM
     import drjit as dr
     import mitsuba as mi
-    mi.set_variant("llvm_ad_rgb")
-    from lgshape import benchspeed, camera, surfaces
-    from lgshape.bench import Rays
-    from lgshape.trace import Surface
-    spec = surfaces.LIBRARY[args.surface]()
+    mi.set_variant(VARIANT)
+    spec = LIBRARY[args.surface]()
     surf = Surface(spec)
     t_max, any_hit = float("inf"), False
     if args.rays == "incoherent":
-        o, d = benchspeed.incoherent_rays(spec, args.res * args.res)
+        o, d = incoherent_rays(spec, args.res * args.res)
     else:
-        o, d = camera.primary_rays(spec.bbox, args.res)
+        o, d = primary_rays(spec.bbox, args.res)
     if args.rays == "shadow":           # the bench's: from the camera's hits to a light
-        import numpy as np
         C = Rays(o, d)
         cam = surf.trace(C.o_dr, C.d_dr)
-        o, d, dist, _ = benchspeed.shadow_rays(spec, surf, o, d, np.asarray(cam.t64),
-                                               np.asarray(cam.hit))
+        o, d, dist, _ = shadow_rays(spec, surf, o, d, np.asarray(cam.t64), np.asarray(cam.hit))
         t_max, any_hit = mi.Float(dist), True
     R = Rays(o, d)
 
@@ -188,8 +191,9 @@ def main():
             sys.exit(f"kernel_profile: needs {tool!r} on the PATH")
     with tempfile.TemporaryDirectory() as work:
         data = os.path.join(work, "perf.data")
-        cmd = [sys.executable, os.path.abspath(__file__), args.surface, "--rays", args.rays,
-               "--res", str(args.res), "--seconds", str(args.seconds), "--child-out", work]
+        cmd = [sys.executable, "-m", "lgshape.bench.kernel_profile", args.surface,
+               "--rays", args.rays, "--res", str(args.res), "--seconds", str(args.seconds),
+               "--child-out", work]
         rec = subprocess.run(["perf", "record", "-o", data, "--"] + cmd,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         if rec.returncode != 0:

@@ -1,24 +1,26 @@
-"""Issue 3's benchmark: lgshape against a global-bound sphere tracer.
+"""lgshape's ray kernel alone against a global-bound sphere tracer.
 
 For 1024 x 1024 primary rays through each library surface (a fixed camera,
 lgshape.camera), prints Mrays/s (median of repeats, measured in this run) and
 the mean / max function evaluations per ray (an interval evaluation counts
 one), the pruning structure's memory, the rays that reached the iteration
 bound, and the pixels where the two disagree on hit / miss (with a float64
-brute-force verdict on who is right, on up to 4096 of them). Run: python benchmarks/trace_speed.py
-[--res 1024] [--repeats 3] [surface ...]
+brute-force verdict on who is right, on up to 4096 of them). Run:
+python -m lgshape.bench.trace_speed [--res 1024] [--repeats 3] [surface ...]
 """
 import argparse
 import time
 
-import lgshape
-import numpy as np
 import drjit as dr
+import numpy as np
 from drjit.llvm.ad import Array3f
 
-from lgshape import baselines, bounds, camera
-from lgshape.expr import evaluate
-from lgshape.reference import clip_to_box, first_sign_change
+from .. import bounds, camera
+from ..expr import evaluate
+from ..reference import clip_to_box, first_sign_change
+from ..surfaces import LIBRARY
+from ..trace import Surface
+from .baselines import sphere_trace
 
 
 def timed(fn, repeats):
@@ -34,7 +36,7 @@ def timed(fn, repeats):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("surfaces", nargs="*", default=sorted(lgshape.surfaces.LIBRARY))
+    ap.add_argument("surfaces", nargs="*", default=sorted(LIBRARY))
     ap.add_argument("--res", type=int, default=1024)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--depth", type=int, default=None, help="pruning depth (default: lgshape's)")
@@ -44,14 +46,14 @@ def main():
     print(f"{'surface':13} {'method':14} {'Mrays/s':>8} {'evals':>6} {'max':>6} {'capped':>6} "
           f"{'mem KiB':>8} {'speedup':>7}  disagreements (float64 says)")
     for name in args.surfaces:
-        spec = lgshape.surfaces.LIBRARY[name]()
-        surf = lgshape.Surface(spec, depth=args.depth, search=args.search)
+        spec = LIBRARY[name]()
+        surf = Surface(spec, depth=args.depth, search=args.search)
         o_np, d_np = camera.primary_rays(spec.bbox, args.res)
         o, d = Array3f(o_np.T.copy()), Array3f(d_np.T.copy())
         dr.eval(o, d)
         L = float(bounds.lipschitz(spec.expr, surf.lo[None], surf.hi[None])[0])
         lg, t_lg = timed(lambda: surf.trace(o, d), args.repeats)
-        st, t_st = timed(lambda: baselines.sphere_trace(surf, o, d, L), args.repeats)
+        st, t_st = timed(lambda: sphere_trace(surf, o, d, L), args.repeats)
         h_lg, h_st = np.asarray(lg.hit), np.asarray(st.hit)
         # Who is right where they disagree: float64 brute force (8192 steps).
         dis_all = np.flatnonzero(h_lg != h_st)

@@ -21,6 +21,11 @@ and gigabytes). References, traced by Mitsuba's Embree on the same rays
 sampled at :data:`MESH_RES`^3 (both models), and ``spheres``, the union as N
 native Mitsuba spheres. They show how the cost of the scene itself grows
 with N (more of the rays hit, through more clutter), for the ratio targets.
+
+Standalone, a worker: ``python -m lgshape.bench.scale MODEL N FORM RES
+REPEATS`` prints one record as a JSON line. A worker times its own build, so
+Dr.Jit, Mitsuba, scikit-image and matplotlib, and lgshape's primitives and
+trace (which a first Surface loads), are imported where they are used.
 """
 from __future__ import annotations
 
@@ -34,19 +39,27 @@ import time
 
 import numpy as np
 
+import lgshape
+
+from .. import tables as T
+from ..camera import primary_rays
+from .common import VARIANT, mitsuba_mesh
+
 NS = (10, 100, 1000, 10000)
 UNPRUNED_MAX = 100
 MESH_RES = 256
 QUICK_NS = (10, 100)
 TIMEOUT = 900
 
-#: The issue's targets at N = 1000 (and 10000), against N = 10.
+#: The targets at N = 1000 (and 10000), against N = 10.
 TARGETS = {"build_s": 2.0, "first_s": 5.0, "steady_ratio": 3.0, "rss_gb": 1.5,
            "steady_ratio_10000": 10.0}
 
 
 def model(kind: str, n: int):
-    import lgshape.primitives as P
+    """The model ``kind`` ("union" or "blend") of ``n`` primitives: (its
+    table form, (centres, radii))."""
+    from .. import primitives as P      # inside the worker's timed build
     rng = np.random.default_rng(1000 + n)
     c = rng.uniform(-1, 1, (n, 3))
     r = (0.6 if kind == "union" else 1.3) * n ** (-1 / 3) * rng.uniform(0.5 if kind == "union"
@@ -112,10 +125,6 @@ def _timed(trace, repeats):
 def worker(kind: str, n: int, form: str, res: int, repeats: int) -> dict:
     """One measurement (run in its own process)."""
     import drjit as dr
-
-    import lgshape
-    from lgshape import tables as T
-    from lgshape.camera import primary_rays
     from drjit.llvm.ad import Array3f
     t0 = time.perf_counter()
     tf, (c, r) = model(kind, n)
@@ -167,10 +176,6 @@ def _reference(kind, n, form, surf, c, r, res, repeats, t0) -> dict:
     import drjit as dr
     import mitsuba as mi
     from drjit.llvm.ad import Array3f
-
-    from .bench import VARIANT
-    from .benchspeed import mitsuba_mesh
-    from .camera import primary_rays
     mi.set_variant(VARIANT)
     if form == "spheres":
         scene = mi.load_dict({"type": "scene", **{
@@ -228,7 +233,7 @@ def run(log, quick=False, res=512, repeats=5) -> list:
                     continue
                 with tempfile.TemporaryDirectory(prefix="lgshape-scale-") as home:
                     env = dict(os.environ, HOME=home)       # a cold Dr.Jit kernel cache
-                    cmd = [sys.executable, "-m", "lgshape.benchscale", kind, str(n), form,
+                    cmd = [sys.executable, "-m", "lgshape.bench.scale", kind, str(n), form,
                            str(res), str(repeats)]
                     try:
                         p = subprocess.run(cmd, env=env, capture_output=True, text=True,

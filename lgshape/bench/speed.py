@@ -1,5 +1,5 @@
-"""The benchmark's speed section: lgshape against the alternatives, as the
-speed issue asks, every number measured in the same process and run.
+"""The benchmark's speed section: lgshape against the alternatives, every
+number measured in the same process and run.
 
 **Rays per second**, for every library surface (:data:`lgshape.surfaces.LIBRARY`)
 and three kinds of rays:
@@ -14,8 +14,8 @@ and three kinds of rays:
   the side the camera sees, towards a fixed point light outside the box
   (:func:`light_position`); ``t_max`` is the distance to the light.
 
-Methods, each on the same prepared rays (:class:`lgshape.bench.Rays`) and
-timed together by :func:`lgshape.bench.timed_together` (the median of timed
+Methods, each on the same prepared rays (:class:`lgshape.bench.common.Rays`) and
+timed together by :func:`lgshape.bench.common.timed_together` (the median of timed
 samples after a warm-up, each sample repeating the trace for at least
 ``min_sample`` s; the methods' samples interleaved round by round, and a
 ratio the median of the rounds' paired ratios):
@@ -24,17 +24,19 @@ ratio the median of the rounds' paired ratios):
   ``.trace(o, d)`` for camera and incoherent rays, ``.occluded(o, d, t_max)``
   for shadow rays (evaluations and iterations per ray of the shadow rays come
   from one more, untimed ``.trace(..., any_hit=True)``);
-- ``sphere_trace``: :func:`lgshape.baselines.sphere_trace` with the valid
-  global Lipschitz bound of interval arithmetic (:func:`lgshape.bench.global_L`)
-  and eps = 1e-5 box diagonals (as :func:`lgshape.bench.sphere_runner`); for
-  shadow rays its nearest hit before t_max (the search stops there);
+- ``sphere_trace``: :func:`lgshape.bench.baselines.sphere_trace` with the
+  valid global Lipschitz bound of interval arithmetic
+  (:func:`lgshape.bench.common.global_L`) and eps = 1e-5 box diagonals (as
+  :func:`lgshape.bench.baselines.sphere_runner`); for shadow rays its nearest
+  hit before t_max (the search stops there);
 - ``mesh``: the marching-cubes mesh of f / |grad f| sampled at ``mesh_res``^3
-  vertices (:func:`lgshape.bench.sample_grid`, as :func:`lgshape.bench.mesh_runner`)
-  traced by Mitsuba's Embree: ``scene.ray_intersect_preliminary`` for camera
-  and incoherent rays, ``scene.ray_test`` for shadow rays.
+  vertices (:func:`lgshape.bench.baselines.sample_grid`, as
+  :func:`lgshape.bench.baselines.mesh_runner`) traced by Mitsuba's Embree:
+  ``scene.ray_intersect_preliminary`` for camera and incoherent rays,
+  ``scene.ray_test`` for shadow rays.
 
 Ratios are the other method's time over lgshape's (above 1: lgshape is
-faster). The issue's targets, printed beside them: at least :data:`TARGET_SPHERE`
+faster). The targets, printed beside them: at least :data:`TARGET_SPHERE`
 times the sphere tracer on every surface but ``sphere`` (at least
 :data:`TARGET_SPHERE_ON_SPHERE` there), at least :data:`TARGET_MESH` times the
 mesh everywhere. ``agree`` is the fraction of rays on which a method's hit /
@@ -51,7 +53,8 @@ median of ``render_repeats`` ``mi.render`` timings after one warm-up render.
 Target: lg_path / path at most :data:`TARGET_CORNELL`.
 
 **First-image latency**: the default scene (``make render``'s,
-``scenes/cornell.xml``) in a subprocess with ``HOME`` set to a fresh
+``scenes/cornell.xml``) in a subprocess (:mod:`lgshape.bench.probe`) with
+``HOME`` set to a fresh
 temporary folder (Dr.Jit keeps its kernel cache in ``$HOME/.drjit``): the
 first ``mi.render`` at ``probe_spp`` spp minus a second identical one in the
 same process is the kernel compile time with an empty cache; a second
@@ -60,7 +63,8 @@ cached kernels are reused across runs).
 
 :func:`run` returns a JSON-ready dict, :func:`chart` draws the ratios,
 :func:`report` writes the markdown section. Standalone:
-``python -m lgshape.benchspeed --out DIR [--quick] [--surfaces ...]``.
+``python -m lgshape.bench.speed --out DIR [--quick] [--surfaces ...]``.
+Dr.Jit, Mitsuba, scikit-image and matplotlib are imported where they are used.
 """
 from __future__ import annotations
 
@@ -77,14 +81,20 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .surfaces import LIBRARY
+import lgshape
 
-VARIANT = "llvm_ad_rgb"
+from ..camera import primary_rays
+from ..expr import evaluate, gradient
+from ..surfaces import LIBRARY
+from .baselines import frozen, sample_grid, sphere_trace
+from .common import VARIANT, Rays, Runner, finite, git_commit, global_L, machine, mitsuba_mesh, \
+    paired_ratio, plain_surface, stderr_log, timed_together
+
 SEED = 52
 KINDS = ("camera", "incoherent", "shadow")
 METHODS = ("lgshape", "sphere_trace", "mesh")
 
-#: The issue's targets: time ratios (other / lgshape) at least these.
+#: The targets: time ratios (other / lgshape) at least these.
 TARGET_SPHERE, TARGET_SPHERE_ON_SPHERE, TARGET_MESH = 2.0, 1.0, 1.0
 #: lg_path's render time over path's on the mesh, at most this.
 TARGET_CORNELL = 1.5
@@ -98,8 +108,8 @@ ST_EPS = 1e-5
 #: Rows where the sphere tracer agrees with lgshape on fewer rays are noted.
 AGREE_NOTE = 0.99
 
-CORNELL = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                       "scenes", "cornell.xml")
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+CORNELL = os.path.join(ROOT, "scenes", "cornell.xml")
 PROBE_TIMEOUT = 900
 #: The first-image probes, in order, sharing one fresh HOME: an empty kernel
 #: cache, then twice the cache the earlier ones filled.
@@ -173,13 +183,12 @@ def shadow_rays(spec, surf, o, d, t, hit, offset: float = SHADOW_OFFSET, light=N
 
 
 class ShadowRays:
-    """Shadow rays in the forms the methods take: :class:`lgshape.bench.Rays`
+    """Shadow rays in the forms the methods take: :class:`lgshape.bench.common.Rays`
     plus ``t_max`` (Dr.Jit Float) and Mitsuba's ray with ``maxt`` = t_max."""
 
     def __init__(self, o, d, t_max):
         import drjit as dr
         import mitsuba as mi
-        from .bench import Rays
         self.rays = Rays(o, d)
         self.t_max = np.asarray(t_max, np.float32)
         self.t_max_dr = mi.Float(self.t_max)
@@ -210,7 +219,6 @@ def _is_bool(v):
 
 
 def _runner(method, setting, run, build_s=0.0, extra=None):
-    from .bench import Runner
     return Runner(method, setting, run, _read, lambda t: None, 0, build_s, extra or {})
 
 
@@ -241,12 +249,11 @@ def lgshape_method(surf, rays, shadow: ShadowRays | None = None, build_s=0.0) ->
 
 def sphere_method(surf_plain, L, rays, shadow: ShadowRays | None = None) -> Method:
     """Plain sphere tracing with the global L (``surf_plain``: the baselines'
-    view of f, see :func:`lgshape.bench._plain_surface`)."""
-    from . import baselines
+    view of f, see :func:`lgshape.bench.common.plain_surface`)."""
     eps = ST_EPS * surf_plain.diagonal
     setting = f"global L {L:.4g}, eps {ST_EPS:g} diag"
     extra = {"lipschitz_L": L}
-    st = baselines.frozen(baselines.sphere_trace, surf_plain, L=L, relax=1.0, eps=eps)
+    st = frozen(sphere_trace, surf_plain, L=L, relax=1.0, eps=eps)
     if shadow is None:
         def run():
             r = st(rays.o_dr, rays.d_dr)
@@ -276,13 +283,11 @@ def mesh_method(scene, rays, shadow: ShadowRays | None, setting, build_s, extra)
 
 def marching_mesh(spec, f):
     """Marching cubes of the samples ``f`` ([z, y, x], spanning the box, as
-    :func:`lgshape.bench.sample_grid`), in the surface's coordinates: (vertices
+    :func:`lgshape.bench.baselines.sample_grid`), in the surface's coordinates: (vertices
     float64 (V, 3), faces int (F, 3)), wound so that the face normals point
     towards f > 0 (the side lgsurface's normal points to), or None where the
     samples have no sign change."""
     from skimage.measure import marching_cubes
-
-    from .expr import evaluate, gradient
     lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
     res = f.shape[0]
     try:
@@ -303,28 +308,15 @@ def marching_mesh(spec, f):
     return v, faces
 
 
-def mitsuba_mesh(v, faces, name="marching_cubes"):
-    """A Mitsuba mesh with smooth (recomputed) vertex normals, as bench's."""
-    import mitsuba as mi
-    mesh = mi.Mesh(name, len(v), len(faces), has_vertex_normals=True)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(v.astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
-    params.update()
-    mesh.recompute_vertex_normals()
-    return mesh
-
-
 def _mean(v):
     return None if v is None or len(v) == 0 else float(np.mean(v))
 
 
 def measure(methods: dict, n, cfg: SpeedConfig) -> dict:
     """The records of the methods on one ray set ({key: Method}, the first
-    lgshape), timed together (:func:`lgshape.bench.timed_together`: their
+    lgshape), timed together (:func:`lgshape.bench.common.timed_together`: their
     samples interleaved round by round), with their hit answers' agreement
     with the first's."""
-    from .bench import timed_together
     timed = timed_together({k: m.runner for k, m in methods.items()}, cfg.repeats,
                            cfg.min_sample)
     recs, ref_hit = {}, None
@@ -359,7 +351,6 @@ def _ratio(other, lg):
     paired ratios (both timed in the same rounds); for records without
     samples (an older run's JSON, reported again), the quotient of their
     median times."""
-    from .bench import paired_ratio
     if not other or not lg or not other.get("seconds") or not lg.get("seconds"):
         return None
     if other.get("samples") and lg.get("samples"):
@@ -371,18 +362,14 @@ def bench_surface(name, cfg: SpeedConfig, log, keep_mesh=False):
     """The rows of one surface (one per ray kind), and its mesh (vertices,
     faces) when ``keep_mesh``."""
     import mitsuba as mi
-
-    import lgshape
-    from . import bench
-    from .camera import primary_rays
     spec = LIBRARY[name]()
     t0 = time.perf_counter()
     surf = lgshape.Surface(spec)
     lg_build = time.perf_counter() - t0
-    plain = bench._plain_surface(spec)
-    L = bench.global_L(spec)
+    plain = plain_surface(spec)
+    L = global_L(spec)
     t0 = time.perf_counter()
-    mesh = marching_mesh(spec, bench.sample_grid(spec, cfg.mesh_res))
+    mesh = marching_mesh(spec, sample_grid(spec, cfg.mesh_res))
     scene = None if mesh is None else mi.load_dict({"type": "scene",
                                                     "shape": mitsuba_mesh(*mesh)})
     mesh_build = time.perf_counter() - t0
@@ -396,9 +383,9 @@ def bench_surface(name, cfg: SpeedConfig, log, keep_mesh=False):
     for kind in KINDS:
         shadow = None
         if kind == "camera":
-            rays = cam_rays = bench.Rays(o_cam, d_cam)
+            rays = cam_rays = Rays(o_cam, d_cam)
         elif kind == "incoherent":
-            rays = bench.Rays(*incoherent_rays(spec, cfg.incoherent))
+            rays = Rays(*incoherent_rays(spec, cfg.incoherent))
         else:
             r = surf.trace(cam_rays.o_dr, cam_rays.d_dr)
             so, sd, st, _ = shadow_rays(spec, surf, o_cam, d_cam,
@@ -485,12 +472,10 @@ def time_renders(scene, spp, repeats):
 def bench_cornell(cfg: SpeedConfig, log, meshes=None):
     """lg_path on cornell.xml against path on its mesh version."""
     import mitsuba as mi
-
-    from . import bench
     meshes = dict(meshes or {})
     defines = {"spp": str(cfg.render_spp), "resx": str(cfg.render_res),
                "resy": str(cfg.render_res)}
-    rec = {"scene": os.path.relpath(CORNELL, os.path.dirname(os.path.dirname(CORNELL))),
+    rec = {"scene": os.path.relpath(CORNELL, ROOT),
            "res": cfg.render_res, "spp": cfg.render_spp, "repeats": cfg.render_repeats,
            "mesh_res": cfg.mesh_res}
     with tempfile.TemporaryDirectory(prefix="lgshape-speed-") as tmp:
@@ -499,7 +484,7 @@ def bench_cornell(cfg: SpeedConfig, log, meshes=None):
         def ply_for(name):
             if name not in meshes:
                 spec = LIBRARY[name]()
-                meshes[name] = marching_mesh(spec, bench.sample_grid(spec, cfg.mesh_res))
+                meshes[name] = marching_mesh(spec, sample_grid(spec, cfg.mesh_res))
             v, faces = meshes[name]
             path = os.path.join(tmp, f"{name}.ply")
             mitsuba_mesh(v, faces, name).write_ply(path)
@@ -524,45 +509,6 @@ def bench_cornell(cfg: SpeedConfig, log, meshes=None):
 
 # ---- First-image latency ------------------------------------------------------------
 
-def probe(scene_path, res, spp, variant=VARIANT):
-    """In this process (a fresh one): load the scene, render it three times
-    at ``spp`` on ``variant``; the times."""
-    t0 = time.perf_counter()
-    import drjit as dr
-
-    import lgshape  # noqa: F401
-    from .cli import use_variant
-    mi = use_variant(variant)
-    t_import = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    scene = mi.load_file(scene_path, resx=str(res), resy=str(res), spp=str(spp))
-    t_load = time.perf_counter() - t0
-    times, kernels = [], []
-    for _ in range(3):
-        dr.kernel_history()                              # clears it
-        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-            t0 = time.perf_counter()
-            img = mi.render(scene, spp=spp, seed=0)
-            dr.eval(img)
-            dr.sync_thread()
-            times.append(time.perf_counter() - t0)
-        kernels.append([k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT])
-    first = kernels[0]
-    cache = os.path.join(os.path.expanduser("~"), ".drjit")
-    files = os.listdir(cache) if os.path.isdir(cache) else []
-    ms = 1e-3
-    return {"import_s": t_import, "load_s": t_load, "first_s": times[0], "second_s": times[1],
-            "third_s": times[2], "cache_files": len(files),
-            "kernels": len(first),
-            "kernels_compiled": sum(1 for k in first if not k["cache_hit"] and not k["cache_disk"]),
-            "kernels_from_disk": sum(1 for k in first if not k["cache_hit"] and k["cache_disk"]),
-            "backend_s": ms * sum(k.get("backend_time", 0.0) for k in first),
-            "codegen_s": ms * sum(k.get("codegen_time", 0.0) for k in first),
-            "execution_s": ms * sum(k.get("execution_time", 0.0) for k in first),
-            "second_codegen_s": ms * sum(k.get("codegen_time", 0.0) for k in kernels[1]),
-            "ir_ops": max((k.get("operation_count", 0) for k in first), default=0)}
-
-
 def bench_compile(cfg: SpeedConfig, log, variant=VARIANT):
     """Cold and warm first renders of the default scene, each in a subprocess
     sharing one fresh HOME."""
@@ -570,7 +516,7 @@ def bench_compile(cfg: SpeedConfig, log, variant=VARIANT):
     with tempfile.TemporaryDirectory(prefix="lgshape-speed-home-") as home:
         env = dict(os.environ, HOME=home)
         for key in PROBES:
-            cmd = [sys.executable, "-m", "lgshape.benchspeed", "--probe", CORNELL,
+            cmd = [sys.executable, "-m", "lgshape.bench.probe", CORNELL,
                    str(cfg.probe_res), str(cfg.probe_spp), variant]
             t0 = time.perf_counter()
             try:
@@ -602,11 +548,8 @@ def bench_compile(cfg: SpeedConfig, log, variant=VARIANT):
 def run(log=None, quick=False, surfaces=None, cornell=True, compile_latency=True,
         cfg: SpeedConfig | None = None, variant: str = VARIANT) -> dict:
     """The whole section: {"meta", "rows", "cornell", "compile"} (JSON-ready
-    apart from inf/NaN, which :func:`lgshape.bench._finite` clears)."""
+    apart from inf/NaN, which :func:`lgshape.bench.common.finite` clears)."""
     import mitsuba as mi
-
-    import lgshape
-    from . import bench
     log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
     cfg = cfg or (QUICK if quick else FULL)
     if surfaces is not None:
@@ -618,7 +561,7 @@ def run(log=None, quick=False, surfaces=None, cornell=True, compile_latency=True
     meta = {"quick": bool(quick), "config": asdict(cfg), "variant": variant, "seed": SEED,
             "shadow_offset_diag": SHADOW_OFFSET, "light": {"distance_half_diag": LIGHT_DISTANCE,
                                                            "direction": list(LIGHT_DIR)},
-            "st_eps_diag": ST_EPS, "machine": bench._machine(), "git": bench._git(),
+            "st_eps_diag": ST_EPS, "machine": machine(), "git": git_commit(),
             "loadavg_start": " ".join(f"{v:.2f}" for v in load)}
     rows, meshes = [], {}
     for name in cfg.surfaces:
@@ -635,7 +578,7 @@ def run(log=None, quick=False, surfaces=None, cornell=True, compile_latency=True
     load = os.getloadavg() if hasattr(os, "getloadavg") else ()
     meta["loadavg_end"] = " ".join(f"{v:.2f}" for v in load)
     meta["seconds"] = round(time.perf_counter() - t_start, 1)
-    return bench._finite(out)
+    return finite(out)
 
 
 # ---- Chart and report -----------------------------------------------------------
@@ -861,10 +804,7 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv[:1] == ["--probe"]:
-        print(json.dumps(probe(argv[1], int(argv[2]), int(argv[3]), *argv[4:5])))
-        return 0
-    p = argparse.ArgumentParser(prog="python -m lgshape.benchspeed",
+    p = argparse.ArgumentParser(prog="python -m lgshape.bench.speed",
                                 description="The speed section of the benchmark.")
     p.add_argument("--out", required=True)
     p.add_argument("--quick", action="store_true")
@@ -885,10 +825,7 @@ def main(argv=None) -> int:
     base = QUICK if args.quick else FULL
     cfg = SpeedConfig(**{**asdict(base), **{k: getattr(args, k) for k in ("res", "incoherent")
                                             if getattr(args, k) is not None}})
-    t0 = time.perf_counter()
-
-    def log(msg):
-        print(f"[{time.perf_counter() - t0:6.1f} s] {msg}", file=sys.stderr, flush=True)
+    log = stderr_log()
     results = run(log, quick=args.quick, surfaces=args.surfaces, cornell=args.cornell,
                   compile_latency=args.compile, cfg=cfg, variant=args.variant)
     os.makedirs(os.path.join(args.out, "charts"), exist_ok=True)
