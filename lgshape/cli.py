@@ -167,6 +167,8 @@ def use_variant(variant):
     if variant not in mi.variants():
         raise CommandError(f"unknown variant '{variant}'; this Mitsuba has "
                            f"{', '.join(mi.variants())}")
+    if variant.startswith("cuda_"):
+        _check_cuda(variant)
     try:
         mi.set_variant(variant)
     except Exception as err:  # e.g. a cuda_ variant without a usable GPU
@@ -176,6 +178,22 @@ def use_variant(variant):
     except RuntimeError as err:
         raise CommandError(str(err)) from None
     return mi
+
+
+def _check_cuda(variant):
+    """A cuda_ variant needs Dr.Jit's CUDA backend, which Dr.Jit initialises
+    when it is imported if it finds a GPU: without one, say so (Mitsuba's own
+    message, "the CUDA backend hasn't been initialized", comes later and
+    names no cause)."""
+    import drjit as dr
+    if dr.has_backend(dr.JitBackend.CUDA):
+        return
+    import ctypes.util
+    why = ("no CUDA driver (libcuda.so) is installed" if ctypes.util.find_library("cuda") is None
+           else "the CUDA driver found no usable GPU")
+    raise CommandError(f"cannot use the variant '{variant}': no CUDA device was found "
+                       f"({why}; Dr.Jit's CUDA backend did not start). Render on the CPU "
+                       f"with --variant {variant.replace('cuda_', 'llvm_', 1)}")
 
 
 def render_image(scene_path, defines, spp=None, variant=DEFAULT_VARIANT, text=None,
@@ -205,15 +223,20 @@ def render_image(scene_path, defines, spp=None, variant=DEFAULT_VARIANT, text=No
         raise CommandError(f"{scene_path} is not a scene: its root element is a "
                            f"{type(scene).__name__}, not <scene>")
 
-    from lgshape.plugins.common import lg_shapes
-    integrator = scene.integrator()
-    if lg_shapes(scene) and not type(integrator).__module__.startswith("lgshape.plugins"):
-        warn(f"the integrator {type(integrator).__name__} does not see "
-             "lgsurface shapes; use lg_path, lg_direct or lg_aov")
-
     if not scene.sensors():
         raise CommandError(f"{scene_path} has no <sensor>: nothing to render")
     sensor = scene.sensors()[0]
+    if scene.integrator() is None:
+        raise CommandError(f"{scene_path} has no <integrator>: add e.g. "
+                           "<integrator type=\"lg_path\"/>")
+    # An integrator that cannot see the lgsurfaces, media the lg integrators
+    # ignore (named as the scene names them): said here, once, through `warn`
+    # (mi.render's own check then stays quiet).
+    from lgshape.plugins.checks import NotDifferentiableError, check_render
+    try:
+        check_render(scene, scene.integrator(), sensor, warn=warn)
+    except NotDifferentiableError as err:
+        raise CommandError(str(err)) from None
     width, height = (int(v) for v in sensor.film().crop_size())
     if width < 1 or height < 1:
         raise CommandError(f"the film of {scene_path} is {width}x{height} pixels; its width "

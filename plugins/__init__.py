@@ -23,8 +23,12 @@ _registered: set[str] = set()
 def register_plugins() -> None:
     """Register all plugins for the current Mitsuba variant (a JIT variant:
     ``llvm_ad_rgb``, ``llvm_ad_mono``, ``llvm_ad_spectral`` or their
-    ``cuda_`` siblings). Calling it again is a no-op."""
+    ``cuda_`` siblings), and wrap ``mi.render`` so that it warns where the
+    integrator cannot see the scene's lgsurfaces or ignores its media
+    (:mod:`.checks`). Calling it again is a no-op."""
     import mitsuba as mi
+
+    from . import checks
 
     variant = mi.variant()
     if variant is None:
@@ -49,6 +53,14 @@ def register_plugins() -> None:
         cls = getattr(module, class_name)
         getattr(mi, f"register_{kind}")(plugin_id, lambda props, cls=cls: cls(props))
     _registered.add(variant)
+    checks.install_render_hook()
 
 
-__all__ = ["PLUGINS", "register_plugins"]
+def __getattr__(name):
+    if name in ("LGShapeWarning", "NotDifferentiableError"):
+        from . import checks
+        return getattr(checks, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = ["LGShapeWarning", "NotDifferentiableError", "PLUGINS", "register_plugins"]

@@ -40,7 +40,12 @@ def refresh_infinite_emitters(scene: mi.Scene) -> None:
 
 def render(integrator, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
     """The lg integrators' ``render`` (``mi.render`` calls the Python method):
+    the checks of :func:`.checks.check_render` (media the integrator
+    ignores, gradients on lgsurface parameters; for a direct
+    ``integrator.render(scene)``, as ``mi.render`` checks before), then
     :func:`refresh_infinite_emitters`, then Mitsuba's own."""
+    from .checks import check_render
+    check_render(scene, integrator, sensor, stacklevel=3)
     refresh_infinite_emitters(scene)
     return mi.SamplingIntegrator.render(integrator, scene, sensor, seed, spp, develop, evaluate)
 

@@ -41,7 +41,9 @@ class LGAOVIntegrator(mi.SamplingIntegrator):
     Channels are named as by Mitsuba's ``aov``: ``<name>.T`` for depth,
     ``<name>.X/.Y/.Z`` for positions and normals, ``<name>.U/.V`` for uv.
     Values describe the nearest surface, native or ``lgsurface``, and are 0
-    where the ray escapes.
+    where the ray escapes. Participating media are ignored (a warning names
+    the shapes that carry one), and a nested integrator that cannot see
+    lgsurfaces (Mitsuba's ``path``) is warned about.
 
     .. tabs::
 
@@ -58,6 +60,9 @@ class LGAOVIntegrator(mi.SamplingIntegrator):
             'aovs': 'dd.y:depth,nn:sh_normal',
             'image': {'type': 'lg_path'}
     """
+
+    PLUGIN = "lg_aov"                   # the plugin name (:func:`.checks.integrator_name`)
+    SEES_LGSURFACES = True              # traces lgsurfaces (:func:`.checks.sees_lgsurfaces`)
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)

@@ -33,7 +33,8 @@ class LGDirectIntegrator(mi.SamplingIntegrator):
     Direct illumination with the estimator of Mitsuba's ``direct``: emitter
     and BSDF samples combined by multiple importance sampling (power
     heuristic), no indirect light. It sees native shapes and every
-    ``lgsurface`` in the scene; its shadow rays test both.
+    ``lgsurface`` in the scene; its shadow rays test both. Participating
+    media are ignored (a warning names the shapes that carry one).
 
     .. tabs::
 
@@ -48,6 +49,9 @@ class LGDirectIntegrator(mi.SamplingIntegrator):
             'type': 'lg_direct',
             'emitter_samples': 4
     """
+
+    PLUGIN = "lg_direct"                # the plugin name (:func:`.checks.integrator_name`)
+    SEES_LGSURFACES = True              # traces lgsurfaces (:func:`.checks.sees_lgsurfaces`)
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)

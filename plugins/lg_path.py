@@ -32,7 +32,9 @@ class LGPathIntegrator(mi.SamplingIntegrator):
     sampling (power heuristic) and Russian roulette, with the parameters and
     the estimator of Mitsuba's ``path``. It sees native shapes and every
     ``lgsurface`` in the scene, keeping the nearer hit, and its shadow rays
-    test both. Participating media are ignored.
+    test both. Participating media are ignored: rendering a scene in which a
+    shape or the sensor carries a medium warns, naming them
+    (:mod:`.checks`).
 
     .. tabs::
 
@@ -47,6 +49,9 @@ class LGPathIntegrator(mi.SamplingIntegrator):
             'type': 'lg_path',
             'max_depth': 8
     """
+
+    PLUGIN = "lg_path"                  # the plugin name (:func:`.checks.integrator_name`)
+    SEES_LGSURFACES = True              # traces lgsurfaces (:func:`.checks.sees_lgsurfaces`)
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)

@@ -106,18 +106,30 @@ class LGSurface(mi.Mesh):
          periodic ones). Area emitters are not supported.
 
     The surface is rendered by the ``lg_path``, ``lg_direct`` and ``lg_aov``
-    integrators; Mitsuba's own integrators do not see it.
+    integrators; Mitsuba's own integrators (``path``, ``volpath``, ``prb``,
+    ``direct``, ``aov``, ...) do not see it, and ``mi.render`` (wrapped by
+    :func:`lgshape.register_plugins`) and ``lgshape render`` warn when one
+    renders a scene with lgsurfaces (:mod:`lgshape.plugins.checks`). The lg
+    integrators ignore participating media (and warn where the scene has
+    some); Mitsuba's ``volpath`` does not see lgsurfaces: no integrator
+    renders both yet.
 
     **Scene parameters.** ``mi.traverse`` shows ``<id>.to_world``
     (``AffineTransform4f``) and every numeric parameter of f as a
     ``Float64``: a library surface's parameters (``<id>.R``), an expression's
     named constants (``<id>.radius``), a primitives file's ``smoothness`` or
-    ``threshold``; all non-differentiable. After ``params.update()`` a new
+    ``threshold``; and those of its BSDF (``<id>.bsdf....``) and media.
+    The surface's own are not differentiable in this version (flagged
+    ``NonDifferentiable``): ``dr.enable_grad`` on one makes
+    ``params.update()`` and ``mi.render`` raise
+    :class:`~lgshape.plugins.checks.NotDifferentiableError`; the BSDF's are
+    (the lg integrators evaluate Mitsuba's BSDFs, so ``mi.render``'s AD
+    reaches them). After ``params.update()`` a new
     value of a parameter of f builds a new :class:`lgshape.Surface` (its
     compiled kernels are reused: its constants are opaque), a new
     ``to_world`` only new matrices and bounds; the render then equals that
-    of a scene loaded with the new values. (The placeholder's own keys,
-    ``faces`` and ``vertex_*``, are rewritten from the box: leave them.)
+    of a scene loaded with the new values. The placeholder triangle's keys
+    (``vertex_positions``, ``faces``, ...) are not listed.
 
     **uv parameterization.** ``uv`` are the spherical angles of the object
     space point about the centre c of the box, with the convention of
@@ -175,6 +187,7 @@ class LGSurface(mi.Mesh):
         #: How many Surfaces this shape has built (1 after loading; one more
         #: per update that changes a parameter of f, none for to_world).
         self.builds = 0
+        self._mesh_traversal = False
         super().__init__("lgsurface", 3, 1, props)
 
         unknown = props.unqueried()
@@ -196,15 +209,49 @@ class LGSurface(mi.Mesh):
     # ---- Scene parameters (mi.traverse / params.update()) -------------------
 
     def traverse(self, callback):
-        """The placeholder mesh's parameters (and the BSDF's), then
+        """The BSDF (and any medium) as children, with Mitsuba's flags, then
         ``to_world`` (an ``AffineTransform4f``) and every numeric parameter
         of f (``Float64``: a library surface's parameters, an expression's
-        named constants, a primitives file's ``smoothness``/``threshold``)."""
-        super().traverse(callback)
+        named constants, a primitives file's ``smoothness``/``threshold``),
+        flagged non-differentiable. The placeholder mesh's own parameters
+        (``vertex_positions``, ``faces``, ...) are not listed: they are not
+        the surface's (:meth:`_set_placeholder` reaches them)."""
+        if self._mesh_traversal:
+            return super().traverse(callback)
+        for name, child in (("bsdf", self.bsdf()), ("interior_medium", self.interior_medium()),
+                            ("exterior_medium", self.exterior_medium())):
+            if child is not None:
+                callback.put(name, child, mi.ParamFlags.Differentiable)
         flags = mi.ParamFlags.NonDifferentiable
         callback.put("to_world", self._to_world, flags)
         for name, value in self._params.items():
             callback.put(name, value, flags)
+
+    def check_no_gradients(self, disable=False):
+        """Raise :class:`~lgshape.plugins.checks.NotDifferentiableError` if
+        a gradient is enabled on a parameter of this surface (its
+        ``to_world`` or a parameter of f); with ``disable``, disable those
+        gradients first (``params.update()`` keeps the values in use)."""
+        from .checks import NotDifferentiableError
+        values = {"to_world": self._to_world, **self._params}
+        enabled = [k for k, v in values.items() if dr.grad_enabled(v)]
+        if not enabled:
+            return
+        if disable:
+            for k in enabled:
+                dr.disable_grad(values[k])
+        prefix = f"{self.id()}." if self.id() else ""
+        keys = ", ".join(f"'{prefix}{k}'" for k in enabled)
+        bsdf = f"'{prefix}bsdf.reflectance.value'"
+        raise NotDifferentiableError(
+            f"lgsurface: gradients are enabled on {keys}, but lgsurface parameters "
+            f"(to_world and the parameters of f) are not differentiable in this version of "
+            f"lgshape: the surface reads them as plain numbers (its ray search has no "
+            f"derivatives), so their gradients would stay 0. "
+            f"What the lg integrators differentiate are the parameters of Mitsuba's plugins "
+            f"they evaluate: BSDFs (e.g. {bsdf} of a diffuse BSDF), textures, emitters. "
+            + ("Their gradients were disabled again; the values in use are kept." if disable
+               else f"Call dr.disable_grad() on {keys}."))
 
     def parameters_changed(self, keys=None):
         """Rebuild what changed: a new :class:`lgshape.Surface` where a
@@ -217,6 +264,7 @@ class LGSurface(mi.Mesh):
         every = not keys                                 # Mitsuba: [] means everything
         names = [k for k in self._params if every or k in keys]
         try:
+            self.check_no_gradients(disable=True)
             values = dict(self._values)
             for k in names:
                 values[k] = _read_value(k, self._params[k])
@@ -229,7 +277,9 @@ class LGSurface(mi.Mesh):
                 _invert(matrix)                          # checks before changing anything
         except Exception:
             for k in names:                              # put the values in use back
+                dr.disable_grad(self._params[k])
                 mi.set_property(self._params[k], self._values[k])
+            dr.disable_grad(self._to_world)
             mi.set_property(self._to_world, mi.ScalarTransform4f(self.matrix.astype(np.float32)))
             raise
         if new_f:
@@ -283,7 +333,11 @@ class LGSurface(mi.Mesh):
 
     def _set_placeholder(self, faces=False):
         lo, hi = self._world_box
-        params = mi.traverse(self)
+        self._mesh_traversal = True                      # the mesh's own keys
+        try:
+            params = mi.traverse(self)
+        finally:
+            self._mesh_traversal = False
         params["vertex_positions"] = mi.Float([*lo, *hi, *lo])
         if faces:
             params["faces"] = mi.UInt32([0, 1, 2])
@@ -397,7 +451,7 @@ class LGSurface(mi.Mesh):
 # ---- Reading the properties -------------------------------------------------
 
 #: Names an expression's constant cannot take: the shape's own parameters and
-#: the keys of the placeholder mesh in ``mi.traverse``.
+#: the keys of the placeholder mesh (its own traversal; ``mi.traverse`` hides them).
 _RESERVED = _OWN + ("faces", "vertex_positions", "vertex_normals", "vertex_texcoords",
                     "silhouette_sampling_weight", "bsdf")
 

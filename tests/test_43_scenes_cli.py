@@ -374,7 +374,12 @@ def test08_warns_about_native_integrators(tmp_path, capsys):
         '<integrator type="lg_aov">\n        <string name="aovs" value="dd.y:depth,nn:sh_normal"/>',
         '<integrator type="path">'))
     assert cli.main(["render", str(scene), "-o", str(tmp_path / "x.png")]) == 0
-    assert "does not see lgsurface shapes" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # named as the scene names it (not its C++ class, MonteCarloIntegrator),
+    # with the lg integrator to use, once
+    assert err.count("does not see lgsurface shapes") == 1
+    assert "the integrator 'path' does not see lgsurface shapes" in err
+    assert "use 'lg_path' instead" in err and "MonteCarloIntegrator" not in err
 
 
 def test09_bench_is_wired(monkeypatch):

@@ -1,0 +1,238 @@
+"""Nothing silent: what lgshape tells the user when a scene and the
+integrator that renders it do not fit.
+
+- A Mitsuba integrator (``path``, ``volpath``, ``prb``, ``direct``, ``aov``,
+  ...: anything but an lg_* integrator) cannot see lgsurface shapes: Mitsuba
+  3.9.1 does not trace Python shapes, so they would be missing from the
+  image. The warning names the integrator as the scene names it and the lg_*
+  integrator to use instead.
+- The lg_* integrators ignore participating media: a medium on a shape
+  (native or lgsurface) or on the sensor would be left out. The warning
+  names the shapes (and the sensor) that carry one, and what renders media.
+- lgsurface parameters are not differentiable: a gradient enabled on one is
+  an error (:class:`NotDifferentiableError`), raised by ``params.update()``
+  and by ``mi.render``.
+
+The checks run in ``mi.render`` (:func:`install_render_hook`, called by
+:func:`lgshape.register_plugins`, wraps Mitsuba 3.9.1's Python
+``mitsuba.render``), in the lg integrators' ``render`` (for a direct
+``integrator.render(scene)``) and in ``lgshape render``. Each warning is
+given once per scene, integrator and message, as a
+:class:`LGShapeWarning` (``warnings.warn``), or through the ``warn``
+callback that ``lgshape render`` passes.
+"""
+from __future__ import annotations
+
+import functools
+import inspect
+import warnings
+
+import mitsuba as mi
+
+
+class LGShapeWarning(UserWarning):
+    """A scene that renders, but not as its author expects (lgsurfaces or
+    media left out of the image)."""
+
+
+class NotDifferentiableError(ValueError):
+    """A gradient was enabled on a parameter of an lgsurface."""
+
+
+#: Mitsuba 3.9.1's C++ integrators: ``class_name()`` -> plugin name.
+_CPP_INTEGRATORS = {
+    "PathIntegrator": "path",
+    "VolumetricPathIntegrator": "volpath",
+    "VolpathMisIntegratorImpl": "volpathmis",
+    "DirectIntegrator": "direct",
+    "AOVIntegrator": "aov",
+    "DepthIntegrator": "depth",
+    "MomentIntegrator": "moment",
+    "ParticleTracerIntegrator": "ptracer",
+    "StokesIntegrator": "stokes",
+}
+
+#: Mitsuba's Python integrators live in ``mitsuba.python.ad.integrators.<plugin>``.
+_PY_PACKAGE = "mitsuba.python.ad.integrators."
+
+#: plugin name -> the lg integrator that renders the same estimate with lgsurfaces.
+INSTEAD = {
+    "path": "lg_path", "volpath": "lg_path", "volpathmis": "lg_path", "prb": "lg_path",
+    "prb_basic": "lg_path", "prbvolpath": "lg_path", "prb_projective": "lg_path",
+    "ptracer": "lg_path",
+    "direct": "lg_direct", "direct_projective": "lg_direct",
+    "aov": "lg_aov", "depth": "lg_aov",
+}
+
+#: The lg integrators that ignore participating media.
+NO_MEDIA = ("lg_path", "lg_direct", "lg_aov")
+
+
+def integrator_name(integrator) -> str:
+    """The plugin name of ``integrator`` as a scene names it (``path``,
+    ``prb``, ``lg_path``, ...); for an integrator outside Mitsuba and
+    lgshape, its class name."""
+    name = getattr(integrator, "PLUGIN", None)           # lgshape's own
+    if name:
+        return name
+    module = type(integrator).__module__ or ""
+    if module.startswith(_PY_PACKAGE):
+        return module[len(_PY_PACKAGE):].split(".")[0]
+    if module == "mitsuba":                              # a C++ plugin
+        cls = integrator.class_name()
+        return _CPP_INTEGRATORS.get(cls, cls)
+    return type(integrator).__name__
+
+
+def sees_lgsurfaces(integrator) -> bool:
+    """Does this integrator trace lgsurfaces? lgshape's integrators do, and
+    so does any Python integrator that sets ``SEES_LGSURFACES = True`` (one
+    built on :func:`lgshape.plugins.common.ray_intersect`)."""
+    return bool(getattr(integrator, "SEES_LGSURFACES", False))
+
+
+def _lg_shapes(scene):
+    return [s for s in scene.shapes() if getattr(s, "IS_LGSURFACE", False)]
+
+
+def _names(items, most=4):
+    items = list(items)
+    text = ", ".join(items[:most])
+    return text + (f" and {len(items) - most} more" if len(items) > most else "")
+
+
+def _shape_name(shape, index, count):
+    kind = "lgsurface" if getattr(shape, "IS_LGSURFACE", False) else shape.class_name()
+    if shape.id():
+        return f"'{shape.id()}' ({kind})"
+    return f"shape {index + 1} of {count} ({kind}, no id)"
+
+
+def _medium_name(medium):
+    return (f"'{medium.id()}' ({medium.class_name()})" if medium.id()
+            else medium.class_name())
+
+
+def unseen_message(scene, integrator, lgs=None):
+    """The warning for an integrator (or one nested in lg_aov) that cannot
+    see the scene's lgsurfaces; None where there is nothing to say."""
+    lgs = _lg_shapes(scene) if lgs is None else lgs
+    if not lgs or integrator is None:
+        return None
+    shapes = _names(f"'{s.id()}'" if s.id() else "(no id)" for s in lgs)
+    if sees_lgsurfaces(integrator):
+        nested = getattr(integrator, "nested", None)
+        if nested is None or sees_lgsurfaces(nested):
+            return None
+        name = integrator_name(nested)
+        return (f"the integrator '{name}' nested in {integrator_name(integrator)} does not see "
+                f"lgsurface shapes: the image channels will lack the lgsurfaces {shapes} "
+                f"(its AOVs have them); nest '{INSTEAD.get(name, 'lg_path')}' instead")
+    name = integrator_name(integrator)
+    instead = INSTEAD.get(name)
+    use = (f"use '{instead}' instead" if instead else
+           "lgshape has no counterpart of it; lg_path, lg_direct and lg_aov see lgsurfaces")
+    if name == "depth":
+        use += " (e.g. <string name=\"aovs\" value=\"dd:depth\"/>)"
+    return (f"the integrator '{name}' does not see lgsurface shapes (Mitsuba 3.9.1 cannot "
+            f"trace Python shapes): the lgsurfaces {shapes} will be missing from the image; "
+            f"{use}")
+
+
+def media_message(scene, integrator, sensor=None, lgs=None):
+    """The warning for an lg integrator that ignores the scene's media;
+    None where there is nothing to say."""
+    name = integrator_name(integrator) if integrator is not None else None
+    if name not in NO_MEDIA:
+        return None
+    shapes = scene.shapes()
+    carriers = []
+    for i, shape in enumerate(shapes):
+        for side, medium in (("interior", shape.interior_medium()),
+                             ("exterior", shape.exterior_medium())):
+            if medium is not None:
+                carriers.append(f"the shape {_shape_name(shape, i, len(shapes))} has an "
+                                f"{side} medium {_medium_name(medium)}")
+    sensors = list(scene.sensors())
+    if isinstance(sensor, mi.Sensor):
+        sensors = [sensor]
+    elif isinstance(sensor, int) and 0 <= sensor < len(sensors):
+        sensors = [sensors[sensor]]
+    for s in sensors:
+        medium = s.get_medium()
+        if medium is not None:
+            which = f"'{s.id()}'" if s.id() else s.class_name()
+            carriers.append(f"the sensor {which} is in the medium {_medium_name(medium)}")
+    if not carriers:
+        return None
+    lgs = _lg_shapes(scene) if lgs is None else lgs
+    if lgs:
+        fix = ("no lgshape integrator renders media yet (lg_volpath does not exist), and "
+               "Mitsuba's 'volpath', which does, cannot see the lgsurfaces")
+    else:
+        fix = "this scene has no lgsurface: render it with Mitsuba's 'volpath'"
+    return (f"{name} ignores participating media, but {_names(carriers, 3)}: it renders "
+            f"as if there were none; {fix}")
+
+
+def check_gradients(scene):
+    """Raise :class:`NotDifferentiableError` where a gradient is enabled on
+    an lgsurface's parameter."""
+    for shape in _lg_shapes(scene):
+        shape.check_no_gradients()
+
+
+_said: set = set()
+
+
+def check_render(scene, integrator=None, sensor=None, warn=None, stacklevel=2):
+    """Check a render of ``scene`` with ``integrator`` (default: the
+    scene's) before it starts: the warnings above, each once per scene,
+    integrator and message (to ``warn(message)`` if given, else
+    ``warnings.warn``), and the gradients' error."""
+    if not isinstance(scene, mi.Scene):
+        return
+    integrator = scene.integrator() if integrator is None else integrator
+    check_gradients(scene)
+    lgs = _lg_shapes(scene)
+    for message in (unseen_message(scene, integrator, lgs),
+                    media_message(scene, integrator, sensor, lgs)):
+        if message is None:
+            continue
+        key = (scene.ptr, integrator.ptr, message)
+        if key in _said:
+            continue
+        _said.add(key)
+        if warn is not None:
+            warn(message)
+        else:
+            warnings.warn(message, LGShapeWarning, stacklevel=stacklevel + 1)
+
+
+def install_render_hook():
+    """Wrap ``mitsuba.render`` (a Python function in Mitsuba 3.9.1,
+    ``mitsuba.python.util.render``) so that it runs :func:`check_render`
+    first. Idempotent; the original stays as ``mi.render.__wrapped__``. Code
+    that took ``from mitsuba import render`` before the plugins were
+    registered keeps the original (the lg integrators still check media)."""
+    original = mi.render
+    if getattr(original, "_lgshape_checks", False):
+        return
+    signature = inspect.signature(original)
+
+    @functools.wraps(original)
+    def render(*args, **kwargs):
+        try:
+            bound = signature.bind(*args, **kwargs).arguments
+        except TypeError:
+            bound = {}                       # Mitsuba reports the bad call
+        check_render(bound.get("scene"), bound.get("integrator"), bound.get("sensor"),
+                     stacklevel=2)
+        return original(*args, **kwargs)
+
+    render._lgshape_checks = True
+    mi.render = render
+
+
+__all__ = ["INSTEAD", "LGShapeWarning", "NotDifferentiableError", "check_render",
+           "install_render_hook", "integrator_name", "media_message", "unseen_message"]
