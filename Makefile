@@ -6,7 +6,7 @@ SPP    ?=
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/pip install -q --upgrade pip
-	$(VENV)/bin/pip install -q -e ".[test,bench]"
+	$(VENV)/bin/pip install -q -e ".[test,bench,frames,video]"
 	touch $@
 
 .PHONY: setup render test bench

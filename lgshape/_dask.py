@@ -2,6 +2,8 @@
 (so that :mod:`lgshape.frames` itself does not)."""
 from distributed import WorkerPlugin
 
+from .plugins import use_variant
+
 
 class WarmUp(WorkerPlugin):
     """Set up a worker before it renders: import Mitsuba, set the variant,
@@ -22,7 +24,6 @@ class WarmUp(WorkerPlugin):
 
     def setup(self, worker):
         try:
-            from .cli import use_variant
             use_variant(self.variant)
             import lgshape.trace  # noqa: F401  (imported by the first lgsurface otherwise)
         except Exception:  # noqa: BLE001  (the frames' tasks raise it again, reported)

@@ -17,7 +17,7 @@ Guarantees:
 
 - **Same image as one render.** Frame k is ``lgshape render SCENE -o ...
   -D name=value ...`` with frame k's values, bit for bit (same passes, same
-  seeds: :func:`lgshape.cli.render_image` renders both), wherever it ran. As
+  seeds: :func:`lgshape.render.render_image` renders both), wherever it ran. As
   for any Mitsuba render, that holds where Mitsuba's image is itself
   reproducible: with the default Gaussian reconstruction filter, each
   sample is added into several pixels with atomic adds from Dr.Jit's
@@ -70,8 +70,8 @@ import time
 import uuid
 from dataclasses import dataclass, field
 
-from .cli import (DEFAULT_VARIANT, CommandError, _check_defines, _check_output, _ProgressBar,
-                  _range, _umask, render_image, scan_scene, write_image)
+from .render import (DEFAULT_VARIANT, CommandError, ProgressBar, check_defines, check_output,
+                     parse_range, render_image, scan_scene, umask, write_image)
 
 __all__ = ["FramesResult", "frame_paths", "render_frames", "sweep", "write_video"]
 
@@ -157,7 +157,7 @@ def render_frames(scene, frames, out="frame.exr", *, spp=None, variant=DEFAULT_V
     `progress`: a progress bar over all frames on stderr (default: where
     stderr is a terminal); `log(message)`: called once per frame written.
 
-    Raises :class:`lgshape.cli.CommandError` for bad input (checked before
+    Raises :class:`lgshape.render.CommandError` for bad input (checked before
     anything is rendered: the scene, the output folder, every frame's values
     against the scene), a scene that fails to load or render (naming the
     frame), a cluster that cannot be reached."""
@@ -186,12 +186,12 @@ def render_frames(scene, frames, out="frame.exr", *, spp=None, variant=DEFAULT_V
     for k, values in enumerate(frames):
         formatted = {str(name): _format(value, name in integers) for name, value in values.items()}
         try:
-            _check_defines(scene, formatted, scan)
+            check_defines(scene, formatted, scan)
         except CommandError as err:
             raise CommandError(f"frame {k}: {err}") from None
         params.append(formatted)
     files = frame_paths(out, len(params))
-    _check_output(out, ext)
+    check_output(out, ext)
     for path in (p for paths in files for p in paths):
         if os.path.isdir(path):
             raise CommandError(f"-o {out}: {path} is a folder")
@@ -204,7 +204,7 @@ def render_frames(scene, frames, out="frame.exr", *, spp=None, variant=DEFAULT_V
                                                              if done[k]])
     if todo:
         tty = sys.stderr.isatty() if progress is None else bool(progress)
-        bar = _ProgressBar(len(todo), unit="frames", tty=tty)
+        bar = ProgressBar(len(todo), unit="frames", tty=tty)
         if workers is None and cluster is None:
             _render_here(scene, params, files, todo, spp, variant, bar, result, log)
         else:
@@ -252,8 +252,8 @@ def _dask():
     try:
         from dask.distributed import Client, LocalCluster, as_completed
     except ImportError:
-        raise CommandError("--workers and --cluster need Dask: pip install "
-                           "'dask[distributed]'") from None
+        raise CommandError("--workers and --cluster need Dask, lgshape's 'frames' extra: "
+                           "pip install 'lgshape[frames]'") from None
     return Client, LocalCluster, as_completed
 
 
@@ -315,7 +315,7 @@ def _render_on_cluster(scene, params, files, todo, spp, variant, workers, cluste
 
 def render_task(job, defines):
     """One frame on a Dask worker: the same set-up and rendering as in
-    the driver (:func:`lgshape.cli.render_image`); returns the image array and
+    the driver (:func:`lgshape.render.render_image`); returns the image array and
     its channel names, not a file."""
     path, text = job["path"], job["text"]
     try:
@@ -360,8 +360,8 @@ def write_video(out, count, fps=24.0):
     try:
         import imageio_ffmpeg
     except ImportError:
-        raise CommandError("--video needs the imageio-ffmpeg package: pip install "
-                           "imageio-ffmpeg") from None
+        raise CommandError("--video needs imageio-ffmpeg, lgshape's 'video' extra: "
+                           "pip install 'lgshape[video]'") from None
     path = os.path.splitext(out)[0] + ".mp4"
     pngs = [paths[-1] for paths in frame_paths(out, count)]
     missing = [p for p in pngs if not os.path.isfile(p)]
@@ -381,7 +381,7 @@ def write_video(out, count, fps=24.0):
         if proc.returncode != 0:
             last = proc.stderr.strip().splitlines()[-1:] or [f"exit status {proc.returncode}"]
             raise CommandError(f"cannot write {path}: ffmpeg failed: {last[0]}")
-        os.chmod(tmp, 0o666 & ~_umask())
+        os.chmod(tmp, 0o666 & ~umask())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -393,7 +393,7 @@ def write_video(out, count, fps=24.0):
 def cli_render(args, out, defines) -> int:
     """``lgshape render`` with --frames, --video, --workers, --cluster or a
     -D name=a:b (from :func:`lgshape.cli.render`)."""
-    ranges = {name: _range(value) for name, value in defines.items() if _range(value)}
+    ranges = {name: parse_range(value) for name, value in defines.items() if parse_range(value)}
     if args.frames is None:
         if ranges:
             name = next(iter(ranges))
@@ -416,7 +416,7 @@ def cli_render(args, out, defines) -> int:
             for i in (0, 1)]
     shown = {name: defines[name] for name in ranges}
     for values in ends:
-        _check_defines(args.scene, values, scan, shown)
+        check_defines(args.scene, values, scan, shown)
 
     def log(message):   # a line per frame where no progress bar is drawn
         print(f"lgshape: {message}", file=sys.stderr)

@@ -56,6 +56,47 @@ def register_plugins() -> None:
     checks.install_render_hook()
 
 
+class VariantError(ValueError):
+    """A Mitsuba variant that cannot be used here (unknown, scalar, polarized,
+    or cuda_ without a CUDA device)."""
+
+
+def use_variant(variant):
+    """Set the Mitsuba variant and register lgshape's plugins for it; returns
+    the mitsuba module. The one set-up of a rendering process: the command
+    line and the Dask workers of :mod:`lgshape.frames` go through it."""
+    import mitsuba as mi
+    if variant not in mi.variants():
+        raise VariantError(f"unknown variant '{variant}'; this Mitsuba has "
+                           f"{', '.join(mi.variants())}")
+    if variant.startswith("cuda_"):
+        _check_cuda(variant)
+    try:
+        mi.set_variant(variant)
+    except Exception as err:  # e.g. a cuda_ variant without a usable GPU
+        raise VariantError(f"cannot use the variant '{variant}': {err}") from None
+    try:
+        register_plugins()
+    except RuntimeError as err:
+        raise VariantError(str(err)) from None
+    return mi
+
+
+def _check_cuda(variant):
+    """A cuda_ variant needs Dr.Jit's CUDA backend, which Dr.Jit initialises
+    when it is imported if it finds a GPU: without one, say so (Mitsuba's own
+    message, "the CUDA backend hasn't been initialized", comes later and
+    names no cause)."""
+    import drjit as dr
+    if dr.has_backend(dr.JitBackend.CUDA):
+        return
+    import ctypes.util
+    why = ("no CUDA driver (libcuda.so) is installed" if ctypes.util.find_library("cuda") is None
+           else "the CUDA driver found no usable GPU")
+    raise VariantError(f"cannot use the variant '{variant}': no CUDA device was found "
+                       f"({why}; Dr.Jit's CUDA backend did not start). Render on the CPU "
+                       f"with --variant {variant.replace('cuda_', 'llvm_', 1)}")
+
 def __getattr__(name):
     if name in ("LGShapeWarning", "NotDifferentiableError"):
         from . import checks

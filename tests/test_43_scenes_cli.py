@@ -24,7 +24,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from lgshape import cli
+from lgshape import cli, render
 from conftest import VARIANT
 
 SCENES = sorted((pathlib.Path(__file__).parent.parent / "scenes").glob("*.xml"))
@@ -283,7 +283,7 @@ def test10_bad_output_found_before_rendering(tmp_path, capsys, monkeypatch, case
     def trap(*args, **kwargs):
         raise AssertionError("the scene was loaded or rendered")
     monkeypatch.setattr(mi, "load_file", trap)
-    monkeypatch.setattr(cli, "_render_passes", trap)
+    monkeypatch.setattr(render, "render_passes", trap)
     assert cli.main(["render", str(SCENES[0]), "-o", str(out)]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"lgshape: error: -o {out}:") and reason in err

@@ -13,6 +13,7 @@ import mitsuba as mi
 import pytest
 
 from lgshape import cli
+from lgshape.plugins import VariantError, use_variant
 
 CUDA_VARIANTS = [v for v in mi.variants() if v.startswith("cuda_") and "polarized" not in v]
 HAS_CUDA = bool(dr.has_backend(dr.JitBackend.CUDA))
@@ -48,8 +49,8 @@ def test01_no_cuda_device_is_said(tmp_path, capsys, variant):
     assert "hasn't been initialized" not in err
     assert not (tmp_path / "x.png").exists()
     # the same from Python (what the Dask workers call)
-    with pytest.raises(cli.CommandError, match="no CUDA device was found"):
-        cli.use_variant(variant)
+    with pytest.raises(VariantError, match="no CUDA device was found"):
+        use_variant(variant)
 
 
 @pytest.mark.skipif(HAS_CUDA, reason="this machine has a CUDA device")
@@ -64,4 +65,4 @@ def test02_frames_say_it_too(tmp_path, capsys):
 @pytest.mark.skipif(not HAS_CUDA, reason="no CUDA device here")
 @pytest.mark.parametrize("variant", CUDA_VARIANTS)
 def test03_cuda_variants_usable_with_a_device(variant):
-    assert cli.use_variant(variant).variant() == variant
+    assert use_variant(variant).variant() == variant

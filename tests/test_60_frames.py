@@ -23,7 +23,7 @@ byte for byte; with 16 (dr.set_thread_count(16), or a 16-core machine), 1 or
 of n = spp nonnegative float32 values in two orders, 2 (n - 1) u of the sum,
 plus the film's division by the summed weight in each render (u each), so
 2 n u <= (2 n + 1) u, u = 2^-24; every frame here is one pass of
-cli.PASS_SAMPLES (more passes would add a rounding each). A PNG (8-bit)
+render.PASS_SAMPLES (more passes would add a rounding each). A PNG (8-bit)
 may then differ by one level.
 """
 import os
@@ -37,7 +37,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from lgshape import cli, frames
+from lgshape import cli, frames, render
 
 SCENE = """<scene version="3.0.0">
     <default name="spp" value="2"/>
@@ -236,7 +236,7 @@ def test05_atomic_write(scene, reference, tmp_path, monkeypatch, capsys, failure
     # the failure (exit status 2, or 130 for Ctrl-C). A rerun completes the
     # sequence: every frame the reference's image. A temporary file
     # left by a killed run is removed by the next run.
-    real = cli._write_bitmap
+    real = render.write_bitmap
 
     def failing(bitmap, path):
         if ".frame_0001.png." in os.path.basename(path):
@@ -246,7 +246,7 @@ def test05_atomic_write(scene, reference, tmp_path, monkeypatch, capsys, failure
                 f.truncate(size // 2)
             raise failure("disk full" if failure is OSError else "")
         real(bitmap, path)
-    monkeypatch.setattr(cli, "_write_bitmap", failing)
+    monkeypatch.setattr(render, "write_bitmap", failing)
     out = tmp_path / "frame.exr"
     args = ["render", str(scene), "-o", str(out), "--frames", str(N), *SWEEP]
     assert cli.main(args) == (2 if failure is OSError else 130)
@@ -255,7 +255,7 @@ def test05_atomic_write(scene, reference, tmp_path, monkeypatch, capsys, failure
         assert "lgshape: error: cannot write" in err and "frame_0001.png" in err
     assert listing(tmp_path) == ["frame_0000.exr", "frame_0000.png", "frame_0001.exr"]
     assert same_image(tmp_path / "frame_0001.exr", reference["frames"] / "frame_0001.exr")
-    monkeypatch.setattr(cli, "_write_bitmap", real)
+    monkeypatch.setattr(render, "write_bitmap", real)
     stale = tmp_path / ".frame_0003.exr.k2j4h5g6.tmp.exr"
     stale.write_bytes(b"half")
     assert cli.main(args) == 0
@@ -287,7 +287,7 @@ def test06_errors(scene, tmp_path, capsys, args, messages):
     def trap(*a, **k):
         raise AssertionError("rendered")
     mp = pytest.MonkeyPatch()
-    mp.setattr(cli, "_render_passes", trap)
+    mp.setattr(render, "render_passes", trap)
     try:
         assert cli.main(["render", str(scene), "-o", str(tmp_path / "f.exr"), *args]) == 2
     finally:
@@ -345,9 +345,9 @@ def test08_scene_text_on_a_worker_without_the_file(scene, tmp_path):
     # the XML text sent with the task: the same image (same_pixels) as
     # loading the file.
     v = {"angle": "30.0", "R": "0.9", "spp": "2"}
-    here = cli.render_image(str(scene), v, progress=lambda *a: None)
+    here = render.render_image(str(scene), v, progress=lambda *a: None)
     job = {"path": str(tmp_path / "elsewhere" / "anim.xml"), "text": SCENE, "spp": None,
-           "variant": cli.DEFAULT_VARIANT}
+           "variant": render.DEFAULT_VARIANT}
     there = frames.render_task(job, v)
     assert there["names"] == here["names"]
     assert same_pixels(there["image"], here["image"], spp=2)
@@ -365,9 +365,9 @@ def test08_scene_text_on_a_worker_without_the_file(scene, tmp_path):
     (folder / "anim.xml").write_text(SCENE)
     job.update(path=str(folder / "anim.xml"), text=text)
     there = frames.render_task(job, v)
-    here = cli.render_image(str(folder / "sent.xml"), v, progress=lambda *a: None)
+    here = render.render_image(str(folder / "sent.xml"), v, progress=lambda *a: None)
     assert same_pixels(there["image"], here["image"], spp=2)
-    plain = cli.render_image(str(folder / "anim.xml"), v, progress=lambda *a: None)
+    plain = render.render_image(str(folder / "anim.xml"), v, progress=lambda *a: None)
     assert not np.array_equal(there["image"], plain["image"])
 
 

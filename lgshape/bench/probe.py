@@ -16,7 +16,7 @@ import os
 import sys
 import time
 
-from ..cli import use_variant
+from ..plugins import use_variant
 
 
 def probe(scene_path, res, spp, variant):
