@@ -11,9 +11,11 @@ does not recompile a kernel).
 """
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
+import drjit as dr
 import numpy as np
 
 
@@ -66,12 +68,16 @@ class DrJitMath:
     inf = math.inf
     _consts: dict
 
-    def __init__(self, Float, native=False):
+    def __init__(self, Float, native=False, bound=None):
         """``native``: Dr.Jit's own functions on every backend (CUDA's
         multi-function unit too), for code that needs no error bound (the
-        baselines); the bounds' ``eps_t`` does not hold for them on CUDA."""
-        import drjit as dr
+        baselines); the bounds' ``eps_t`` does not hold for them on CUDA.
+        ``bound``: name -> array, the values of named constants by name (for
+        instance scene parameters with gradients, so that derivatives with
+        respect to them flow through the expression); other named constants
+        are opaque values of their own."""
         self.dr, self.Float = dr, Float
+        self.bound = dict(bound or {})
         single = dr.type_v(Float) == dr.VarType.Float32
         # + - * / sqrt are correctly rounded (pad by 2 ulp); Dr.Jit's sin,
         # cos, exp and log are accurate to a few ulp (pad by 16 / 64 ulp).
@@ -122,7 +128,9 @@ class DrJitMath:
     def named(self, name: str, c: float):
         """A named constant: its own opaque value, never shared with a
         constant that happens to have the same value (so the kernel's code
-        does not depend on the values)."""
+        does not depend on the values); a ``bound`` one's given array."""
+        if name in self.bound:
+            return self.bound[name]
         key = ("named", name, c)
         v = self._consts.get(key)
         if v is None:
@@ -130,7 +138,6 @@ class DrJitMath:
         return v
 
     def errstate(self):
-        import contextlib
         return contextlib.nullcontext()
 
     def branch(self, cond, true_fn, false_fn, label=None):
@@ -156,7 +163,6 @@ def zero_like(v):
     for an infinite v); for anything else ``0.0 * v`` (numpy: NaN where v
     is, as the float64 oracles always had it)."""
     if type(v).__module__.startswith("drjit"):
-        import drjit as dr
         return dr.zeros(type(v), dr.width(v))
     return 0.0 * v
 
@@ -164,7 +170,6 @@ def zero_like(v):
 def _via_float64(Float, fn):
     """fn computed in float64 and rounded to ``Float`` (one array or a
     tuple of them)."""
-    import drjit as dr
     Float64 = dr.float64_array_t(Float)
 
     def wrapped(v):
@@ -187,9 +192,7 @@ def exact_arithmetic(Float):
     under fast math; the search uses neither) and ``x / c`` for a literal c,
     which Dr.Jit traces as x times the rounded 1 / c (two roundings, within
     ``u``, twice the unit roundoff)."""
-    import contextlib
 
-    import drjit as dr
     if dr.backend_v(Float) == dr.JitBackend.CUDA:
         return dr.scoped_set_flag(dr.JitFlag.FastMath, False)
     return contextlib.nullcontext()
@@ -197,7 +200,6 @@ def exact_arithmetic(Float):
 
 def math_for(value):
     """The back end for an array (numpy -> NUMPY, Dr.Jit -> DrJitMath)."""
-    import drjit as dr
     if dr.is_array_v(value):
         return DrJitMath(dr.float_array_t(dr.leaf_t(value)) if dr.depth_v(value) > 1 else type(value))
     return NUMPY

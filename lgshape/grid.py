@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import drjit as dr
 import numpy as np
 
 from .arraymath import NUMPY
@@ -157,7 +158,6 @@ class DeviceGrid:
     table: object
 
     def __init__(self, grid: PruningGrid, Float):
-        import drjit as dr
         Int32 = dr.int32_array_t(Float)
         UInt32 = dr.uint32_array_t(Float)
         self.R = grid.resolution
@@ -210,7 +210,6 @@ def row_slots(grid: PruningGrid, row_cells, up: int) -> np.ndarray:
 def row_slot(g, i, up: int, active):
     """Device side of :func:`row_slots`: (slot, brick occupied) of the row
     cell holding fine cell i (three Int32); one gather (the top entry)."""
-    import drjit as dr
     v = dr.gather(dr.int32_array_t(type(i[0])), g.top,
                   dr.uint32_array_t(type(i[0]))(_brick_index(i, g.R)), active)
     return _row_place(v, i, up), active & (v > 0)
@@ -218,7 +217,6 @@ def row_slot(g, i, up: int, active):
 
 def _row_place(v, i, up: int):
     """The slot of fine cell i's row cell in the brick of top entry v."""
-    import drjit as dr
     UInt32 = dr.uint32_array_t(type(i[0]))
     sub = BRICK >> up
     place = [(a >> up) & (sub - 1) for a in i]
@@ -378,7 +376,6 @@ def clip_to_box(o, d, lo, hi, t_min, t_max):
     """[t_start, t_end] of o + t d inside the box [lo, hi] and [t_min, t_max]
     (Dr.Jit arrays or lists of them, any precision; t_start > t_end where the
     ray misses)."""
-    import drjit as dr
     Float = type(o[0])
     t0, t1 = Float(-dr.inf), Float(dr.inf)
     for a in range(3):
@@ -432,7 +429,6 @@ class Walker:
         table, they read the octant table of their direction, whose boxes
         reach further ahead (:func:`octant_rings`); the others read the
         cube table, eight times smaller in the caches."""
-        import drjit as dr
         self.g, self.d, self.t_end, self.up = g, d, t_end, rows_up
         R = g.R
         cell_min = dr.minimum(dr.minimum(g.cell[0], g.cell[1]), g.cell[2])
@@ -471,7 +467,6 @@ class Walker:
         nudge) and, per axis, whether t lies past the grid's last face in
         the direction of travel (within rounding of it: the walk goes on in
         the boundary cells along that face)."""
-        import drjit as dr
         Int32 = dr.int32_array_t(type(t))
         R, d = self.g.R, self.d
         i, out = [], []
@@ -488,7 +483,6 @@ class Walker:
         at t is occupied (its slot in the brick map; 0 through the dense
         table, see :meth:`next`); ``t_out``: the exit of that cell, or of
         the cube of empty cells or bricks around it."""
-        import drjit as dr
         g = self.g
         Float = type(t)
         UInt32 = dr.uint32_array_t(Float)
@@ -508,14 +502,12 @@ class Walker:
         """Where the ray at t leaves the box of cells [lo_c, hi_c) (three
         Int32 each; faces marked ``out`` ignored), past t by the nudge:
         rounding must never stall a ray."""
-        import drjit as dr
         return self._exit_faces(t, [dr.select(self.d[a] < 0, lo_c[a], hi_c[a]) for a in range(3)],
                                 out)
 
     def _exit_faces(self, t, face, out):
         """:meth:`_exit` from the faces ahead of the ray (three Int32; >= 1
         on an axis where the direction is 0)."""
-        import drjit as dr
         Float = type(t)
         t_out = Float(dr.inf)
         for a in range(3):
@@ -529,7 +521,6 @@ class Walker:
         where the ray leaves the cube of cells i - k .. i + k (through an
         octant table, the box from i to i + k ahead: :func:`octant_rings`).
         The slot of an occupied cell is not read here (see :meth:`next`)."""
-        import drjit as dr
         g = self.g
         Float = type(t)
         UInt32 = dr.uint32_array_t(Float)
@@ -552,7 +543,6 @@ class Walker:
         For a walker of a table form (``rows_up``): ``slot`` is the found
         cell's row cell (:func:`row_slot`), and ``t_exit`` the exit of that
         row cell, the end of the segment its rows hold for."""
-        import drjit as dr
         Float = type(t)
         Int32 = dr.int32_array_t(Float)
         UInt32 = dr.uint32_array_t(Float)
@@ -591,13 +581,11 @@ def _min(a, b):
     from a near-zero direction's overflowed quotients, is ignored, as
     dr.minimum ignores it). One compare and select, one instruction on
     x86, where dr.minimum's NaN rule takes a few more."""
-    import drjit as dr
     return dr.select(b < a, b, a)
 
 
 def _max(a, b):
     """max(a, b) where a is never NaN (see :func:`_min`)."""
-    import drjit as dr
     return dr.select(b > a, b, a)
 
 
@@ -605,7 +593,6 @@ def slot_at(g: DeviceGrid, p, up: int):
     """(slot, occupied) of the row cell (:func:`row_slot`) of the fine cell
     holding point p (grid-relative coordinates, a list of three Dr.Jit
     arrays); ``occupied``: that fine cell is occupied."""
-    import drjit as dr
     Float = type(p[0])
     Int32 = dr.int32_array_t(Float)
     R = g.R
@@ -619,7 +606,6 @@ def slot_at(g: DeviceGrid, p, up: int):
 def _cell_lookup(g: DeviceGrid, i, active):
     """The brick map at fine cell i (three Int32): (top entry v, occupied
     brick, bit of the cell in its brick, occupied cell)."""
-    import drjit as dr
     Int32 = dr.int32_array_t(type(i[0]))
     UInt32 = dr.uint32_array_t(type(i[0]))
     v = dr.gather(Int32, g.top, UInt32(_brick_index(i, g.R)), active)

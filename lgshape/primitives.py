@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .expr.node import Expr, const, maximum, minimum, named, sqrt, var
-from .tables import Aggregate, TableForm, make_group, param
+from .tables import Aggregate, TableForm, make_group, param, smin_below
 
 X, Y, Z = var("x"), var("y"), var("z")
 
@@ -287,8 +287,9 @@ def smooth_union(*parts, k: float) -> TableForm:
     if not (np.isfinite(k) and k > 0):
         raise ValueError(f"smooth_union: k must be positive and finite, got {k}")
     groups = [make_group(_distance(p.kind), _f32(_distance_params(p))) for p in parts]
-    # the smooth minimum lies up to k / 4 below the union: the box reaches that far
-    return _form(var("A0"), "smin", groups, float(k), parts, 0.25 * float(k))
+    # the fold lies up to smin_below below the union: the box reaches that far
+    return _form(var("A0"), "smin", groups, float(k), parts,
+                 float(smin_below(sum(len(p) for p in parts), float(k))))
 
 
 def blend(*parts, threshold: float = 0.5) -> TableForm:

@@ -72,10 +72,48 @@ def first_sign_change(F, o, d, t0, t1, steps: int = 4096, bisections: int = 50):
     k = np.argmax(change, 1)
     a, b = t[np.arange(n), k], t[np.arange(n), k + 1]
     fa = v[np.arange(n), k]
+    a, b = bisect_sign_change(F, o, d, a, b, fa, bisections)
+    return np.where(has, 0.5 * (a + b), np.inf)
+
+
+def bisect_sign_change(F, o, d, a, b, fa, bisections: int = 50):
+    """The brackets [a, b] of sign changes of F along the rays o + t d (one
+    per row; fa = F(a)) halved ``bisections`` times: (a, b)."""
     for _ in range(bisections):
         mid = 0.5 * (a + b)
         fm = along(F, o, d, mid)
         left = np.sign(fm) * np.sign(fa) <= 0
         b = np.where(left, mid, b)
         a, fa = np.where(left, a, mid), np.where(left, fa, fm)
-    return np.where(has, 0.5 * (a + b), np.inf)
+    return a, b
+
+
+def rod_intervals(o, d, a, b, r):
+    """Entry and exit t (n, m) of the rays o + t d (n, 3) through the solid
+    cylinders of radius r_j (m,) about the segments a_j b_j (m, 3), capped
+    flat, NaN where the line misses one."""
+    ba = b - a
+    L = np.linalg.norm(ba, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.where(L[:, None] > 0, ba / np.where(L > 0, L, 1.0)[:, None], np.array([0.0, 0.0, 1.0]))
+    oa = o[:, None, :] - a[None]
+    ou = (oa * u[None]).sum(-1)
+    du = d @ u.T
+    op = oa - ou[..., None] * u[None]
+    dp = d[:, None, :] - du[..., None] * u[None]
+    A = (dp * dp).sum(-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tc = np.where(A > 0, -(op * dp).sum(-1) / A, 0.0)
+        m = op + tc[..., None] * dp
+        rho = np.sqrt((m * m).sum(-1))
+        q = (r[None] - rho) * (r[None] + rho)
+        h = np.where(A > 0, np.sqrt(np.maximum(q, 0) / A), np.inf)
+        c0, c1 = tc - h, tc + h
+        s0, s1 = -ou / du, (L[None] - ou) / du
+        par = du == 0
+        inside = (ou >= 0) & (ou <= L[None])
+        a0 = np.where(par, np.where(inside, -np.inf, np.inf), np.minimum(s0, s1))
+        a1 = np.where(par, np.where(inside, np.inf, -np.inf), np.maximum(s0, s1))
+    tn, tf = np.maximum(c0, a0), np.minimum(c1, a1)
+    ok = (q >= 0) & (tn <= tf)
+    return np.where(ok, tn, np.nan), np.where(ok, tf, np.nan)

@@ -74,6 +74,18 @@ def combine_expr(op: str, k: float = 0.0) -> Expr:
     raise ValueError(f"unknown combine {op!r} (one of {', '.join(COMBINES)})")
 
 
+def smin_below(n, k: float):
+    """How far the smooth minimum of radius k folded over n values can lie
+    below their minimum: min((n - 1) k / 4, k). Each fold lowers by at most
+    k / 4; and the whole fold by less than k: if the fold u so far is at
+    least its operands' minimum m less k, a new value v >= m takes it to
+    u - (k - (v - u))^2 / (4k), and v - u >= k - (u - (m - k)), so that stays
+    above m - k; a new v < m gives at least v - x - (k - x)^2 / (4k) >= v - k
+    with x = v - u in [0, k)."""
+    n = np.asarray(n)
+    return np.minimum(np.maximum(n - 1, 0) * (0.25 * k), k)
+
+
 def param(q: int) -> Expr:
     return var(f"p{q}")
 
@@ -517,8 +529,9 @@ def _prune_aggregate(agg, ivals, ncells):
             a_lo = red(a_lo, _seg_reduce(red, c[keep], lo[keep], ncells, ident))
             a_hi = red(a_hi, _seg_reduce(red, c[keep], hi[keep], ncells, ident))
             count += _seg_count(c[keep], ncells)
-        if agg.op == "smin":                  # each fold step lowers by at most k / 4
-            a_lo = a_lo - np.maximum(count - 1, 0) * (0.25 * agg.k)
+        if agg.op == "smin":                  # each fold lowers by at most k / 4,
+            # and the folds together by less than k (smin_below)
+            a_lo = a_lo - smin_below(count, agg.k)
     else:
         a_lo, a_hi, mag = np.zeros(ncells), np.zeros(ncells), np.zeros(ncells)
         count = np.zeros(ncells, np.int64)

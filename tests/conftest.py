@@ -74,3 +74,18 @@ def random_boxes(rng, bbox, n, max_frac=0.3):
     size = (hi - lo) * rng.uniform(1e-3, max_frac, (n, 3)) * rng.uniform(0, 1, (n, 1)) ** 2
     blo = lo + (hi - lo - size) * rng.uniform(0, 1, (n, 3))
     return blo, blo + size
+
+
+def sensor_xml(origin, target="0, 0, 0", up="0, 1, 0", fov="40", width="$res", height="$res",
+               spp="$spp"):
+    """The perspective sensor of the tests' scenes: a box-filtered hdrfilm
+    and the independent sampler (values may be $-references to defaults)."""
+    return f"""<sensor type="perspective">
+        <float name="fov" value="{fov}"/>
+        <transform name="to_world"><lookat origin="{origin}" target="{target}" up="{up}"/></transform>
+        <sampler type="independent"><integer name="sample_count" value="{spp}"/></sampler>
+        <film type="hdrfilm">
+            <integer name="width" value="{width}"/><integer name="height" value="{height}"/>
+            <rfilter type="box"/>
+        </film>
+    </sensor>"""

@@ -180,3 +180,14 @@ def sphere_roots(o, d, centre, radius):
     h = np.sqrt(np.abs(q) / A)
     h = np.where(q <= 0, h + 0j, 1j * h)
     return np.stack([tc - h, tc + h], 1)
+
+
+def assert_inside(name, lo, hi, values):
+    """Every value (NaN excepted: undefined points) within [lo, hi]
+    (broadcast against the values), no tolerance: the oracle of the
+    enclosure tests (test_02, test_06)."""
+    lo, hi = np.broadcast_to(lo, values.shape), np.broadcast_to(hi, values.shape)
+    ok = np.isnan(values) | ((lo <= values) & (values <= hi))
+    bad = np.argwhere(~ok)
+    assert bad.size == 0, (f"{name}: {len(bad)} samples outside; first: value "
+                           f"{values[tuple(bad[0])]} not in [{lo[tuple(bad[0])]}, {hi[tuple(bad[0])]}]")

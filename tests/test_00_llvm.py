@@ -23,6 +23,7 @@ import OpenEXR
 import pytest
 
 import _lgshape_startup
+from conftest import sensor_xml
 from lgshape import _llvm
 
 TIMEOUT = 120  # seconds per child process; each takes about 1-3 s
@@ -155,15 +156,7 @@ def test10_every_import_order_runs_min_max_kernels(first, tmp_path):
 
 SCENE = """<scene version="3.0.0">
     <integrator type="path"><integer name="max_depth" value="3"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="40"/>
-        <transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
-        <film type="hdrfilm">
-            <integer name="width" value="16"/><integer name="height" value="16"/>
-            <rfilter type="box"/>
-        </film>
-    </sensor>
+    """ + sensor_xml("0, 0, 5", width=16, height=16, spp=4) + """
     <shape type="sphere"><bsdf type="diffuse"/></shape>
     <emitter type="constant"/>
 </scene>

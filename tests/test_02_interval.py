@@ -8,6 +8,7 @@ rounding). No tolerance is added."""
 import numpy as np
 import pytest
 from conftest import ALL_CASES, case_expr, case_id, random_boxes
+from oracles import assert_inside
 
 from conftest import JIT
 
@@ -25,14 +26,6 @@ BOXES, SAMPLES = 400, 24
 def _targets(f):
     g = gradient(f)
     return [("f", f), ("df/dx", g[0]), ("df/dy", g[1]), ("df/dz", g[2])]
-
-
-def _assert_inside(name, lo, hi, values):
-    lo, hi = np.broadcast_to(lo, values.shape), np.broadcast_to(hi, values.shape)
-    ok = np.isnan(values) | ((lo <= values) & (values <= hi))
-    bad = np.argwhere(~ok)
-    assert bad.size == 0, (f"{name}: {len(bad)} samples outside; first: value "
-                           f"{values[tuple(bad[0])]} not in [{lo[tuple(bad[0])]}, {hi[tuple(bad[0])]}]")
 
 
 @pytest.mark.parametrize("backend", ["numpy64", "drjit32"])
@@ -57,7 +50,7 @@ def test01_box_soundness(case, backend, rng):
                 np.broadcast_to(np.asarray(r.hi + 0 * env["x"].lo, np.float64), (BOXES,))) for r in res]
     for (name, _), (ilo, ihi), v in zip(targets, ivs, values):
         v = np.broadcast_to(v, (BOXES, SAMPLES))
-        _assert_inside(name, ilo[:, None], ihi[:, None], v)
+        assert_inside(name, ilo[:, None], ihi[:, None], v)
 
 
 @pytest.mark.parametrize("case", ALL_CASES, ids=case_id)
@@ -84,7 +77,7 @@ def test02_segment_soundness_dhd(case, rng):
         ilo = np.broadcast_to(np.asarray(r.lo + 0 * O[0], np.float64), (n,))
         ihi = np.broadcast_to(np.asarray(r.hi + 0 * O[0], np.float64), (n,))
         v = np.broadcast_to(evaluate(e, env), (n, SAMPLES))
-        _assert_inside(name, ilo[:, None], ihi[:, None], v)
+        assert_inside(name, ilo[:, None], ihi[:, None], v)
 
 
 def test03_domain_edges():

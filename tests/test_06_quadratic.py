@@ -10,6 +10,7 @@ order of the excess."""
 import numpy as np
 import pytest
 from conftest import ALL_CASES, case_expr, case_id
+from oracles import assert_inside
 
 from conftest import JIT
 
@@ -73,11 +74,7 @@ def test01_segment_soundness(case, backend, rng):
         o, d, a, b = _segments(rng, bbox, SEGMENTS)
     t = a[:, None] + (b - a)[:, None] * np.linspace(0, 1, SAMPLES)[None]
     for name, e, (lo, hi) in zip(("f", "g"), (f, g), _ranges([f, g], o, d, a, b, backend)):
-        v = _values(e, o, d, t)
-        ok = np.isnan(v) | ((lo[:, None] <= v) & (v <= hi[:, None]))
-        bad = np.argwhere(~ok)
-        assert bad.size == 0, (f"{name}: {len(bad)} samples outside; first: "
-                               f"{v[tuple(bad[0])]} not in [{lo[bad[0][0]]}, {hi[bad[0][0]]}]")
+        assert_inside(name, lo[:, None], hi[:, None], _values(e, o, d, t))
 
 
 @pytest.mark.parametrize("backend", ["numpy64", "drjit32"])
@@ -108,10 +105,7 @@ def test01b_end_values_sound(case, backend, rng):
         ends = [np.broadcast_to(v, a.shape) for v in quad_ends(seg, q)]
     for k, t in enumerate((tm - r, tm + r)):
         lo, hi = ends[2 * k], ends[2 * k + 1]
-        v = _values(f, o, d, t[:, None])[:, 0]
-        ok = np.isnan(v) | ((lo <= v) & (v <= hi))
-        assert ok.all(), (f"end {k}: {int((~ok).sum())} outside; first: "
-                          f"{v[~ok][0]} not in [{lo[~ok][0]}, {hi[~ok][0]}]")
+        assert_inside(f"end {k}", lo, hi, _values(f, o, d, t[:, None])[:, 0])
     assert np.isfinite(ends[0]).any()           # the check is not vacuous
 
 

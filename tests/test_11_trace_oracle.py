@@ -43,6 +43,7 @@ import numpy as np
 import pytest
 
 import lgshape
+import lgshape.evaluator
 import lgshape.trace
 from lgshape.reference import along, clip_to_box, polynomial_roots
 from oracles import check_first_roots, sphere_roots
@@ -157,7 +158,7 @@ def test01d_point_left_out_where_the_forms_decide(name, rng, monkeypatch):
     o32, d32 = o32[::4], d32[::4]
     res = {}
     for decides in (False, True):
-        monkeypatch.setattr(lgshape.trace, "FORM_DECIDES", decides)
+        monkeypatch.setattr(lgshape.evaluator, "FORM_DECIDES", decides)
         surf = lgshape.Surface(spec)
         assert surf.total
         surf.ray_polynomial = False

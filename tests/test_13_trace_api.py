@@ -232,7 +232,7 @@ def test09_numpy_rays_follow_the_variant():
 ])
 def test10_total_expressions(f, total):
     """``Surface.total`` (f defined at every point, so its interval forms
-    alone may prove the Kalra-Barr tests, see trace._Evaluator._decided):
+    alone may prove the Kalra-Barr tests, see lgshape.evaluator.Evaluator._decided):
     True only for f built of ops defined on all reals (a division only by
     a constant, powers >= 0). Oracle: each expression's ops, by hand."""
     surf = lgshape.Surface(lgshape.parse(f), ((-1.5,) * 3, (1.5,) * 3))

@@ -371,8 +371,9 @@ def test_tables_found_only_where_they_apply():
 
 
 def test_smooth_union_box_holds_the_surface():
-    """The smooth union lies up to k / 4 below the union: its box is that
-    much larger, so f > 0 on the box (oracle: f over every row, float64)."""
+    """The smooth union lies below the union (by up to min((n - 1) k / 4,
+    k), tables.smin_below): its box is that much larger, so f > 0 on the box
+    (oracle: f over every row, float64)."""
     tf = P.smooth_union(P.spheres([[0, 0, 0], [0.15, 0, 0]], 0.1), k=0.8)
     lo, hi = (np.array(v) for v in tf.bbox)
     g = np.linspace(0, 1, 9)
@@ -386,6 +387,31 @@ def test_smooth_union_box_holds_the_surface():
             pts[:, (axis + 2) % 3] = lo[(axis + 2) % 3] + (hi - lo)[(axis + 2) % 3] * v.ravel()
             faces.append(pts)
     assert np.all(tables.evaluate_points(tf, np.concatenate(faces)) > 0)
+
+
+def test_smooth_union_of_coincident_spheres():
+    """16 spheres at one centre, k = 0.75 (dyadic: the kernel's rows and k
+    are the oracle's exactly): every distance is |p - c| - r, so the folded
+    smooth minimum is |p - c| - r - D_16 with D_1 = 0, D_(j+1) = D_j +
+    (k - D_j)^2 / (4k), a sphere of radius r + D_16 = 0.68 (it lies 0.43,
+    more than k / 4, beyond the parts). Oracle: the ray-sphere root in
+    float64; every ray aimed at the centre hits (the box reaches that far)."""
+    c, r, k, n = np.array([0.5, 0.25, 0.0]), 0.25, 0.75, 16
+    D = 0.0
+    for _ in range(n - 1):
+        D += max(k - D, 0.0) ** 2 / (4 * k)
+    assert D > k / 4
+    tf = P.smooth_union(P.spheres(np.tile(c, (n, 1)), r), k=k)
+    surf = lgshape.Surface(tf)
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=(400, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    o = np.float32(c + 2.0 * u)
+    d = np.float32(-u + rng.uniform(-0.1, 0.1, (400, 3)))
+    counts = check_first_roots(surf, numpy_F(tf), o, d,
+                               sphere_roots(o.astype(np.float64), d.astype(np.float64),
+                                            c, r + D))
+    assert counts["none"] == 0 and counts["simple"] > 300
 
 
 def test_builder_distances_match_closed_forms():

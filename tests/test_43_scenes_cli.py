@@ -23,6 +23,7 @@ import mitsuba as mi
 import numpy as np
 import OpenEXR
 import pytest
+from conftest import sensor_xml
 
 from lgshape import cli, render
 from conftest import VARIANT
@@ -39,17 +40,7 @@ AOV_SCENE = """<scene version="3.0.0">
         <string name="aovs" value="dd.y:depth,nn:sh_normal"/>
         {nested}
     </integrator>
-    <sensor type="perspective">
-        <float name="fov" value="$fov"/>
-        <transform name="to_world">
-            <lookat origin="0, 0, 7" target="0, 0, 0" up="0, 1, 0"/>
-        </transform>
-        <sampler type="independent"><integer name="sample_count" value="2"/></sampler>
-        <film type="hdrfilm">
-            <integer name="width" value="$resx"/><integer name="height" value="$resy"/>
-            <rfilter type="box"/>
-        </film>
-    </sensor>
+    """ + sensor_xml("0, 0, 7", fov="$fov", width="$resx", height="$resy", spp=2) + """
     <shape type="lgsurface"><string name="surface" value="torus"/></shape>
     <emitter type="constant"/>
 </scene>
@@ -66,15 +57,7 @@ SPHERE_SCENE = """<scene version="3.0.0">
         <string name="aovs" value="dd:depth"/>
         <integrator type="lg_path" name="image"><integer name="max_depth" value="3"/></integrator>
     </integrator>
-    <sensor type="perspective">
-        <float name="fov" value="30"/>
-        <transform name="to_world"><lookat origin="0, 0, 5" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
-        <film type="hdrfilm">
-            <integer name="width" value="$res"/><integer name="height" value="$res"/>
-            <rfilter type="box"/>
-        </film>
-    </sensor>
+    """ + sensor_xml("0, 0, 5", fov="30") + """
     <emitter type="constant"/>
     <shape type="rectangle">
         <transform name="to_world"><scale value="3"/><translate z="-1"/></transform>

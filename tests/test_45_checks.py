@@ -103,16 +103,22 @@ def test04_no_lgsurface_no_warning():
     assert lg_warnings(lambda: mi.render(s)) == []
 
 
-def test05_command_line_names_the_plugin(tmp_path, capsys):
-    # Oracle: the scene's <integrator type="prb"/>; one warning line.
-    xml = tmp_path / "prb.xml"
-    xml.write_text("""<scene version="3.0.0">
-    <integrator type="prb"/>
+def tiny_scene(integrator, shape):
+    """A scene file for the command line: a 4 x 4 image at 1 spp."""
+    return f"""<scene version="3.0.0">
+    {integrator}
     <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="4"/>
         <integer name="height" value="4"/></film>
         <sampler type="independent"><integer name="sample_count" value="1"/></sampler></sensor>
-    <shape type="lgsurface" id="knot"><string name="surface" value="torus"/></shape>
-</scene>""")
+    {shape}
+</scene>"""
+
+
+def test05_command_line_names_the_plugin(tmp_path, capsys):
+    # Oracle: the scene's <integrator type="prb"/>; one warning line.
+    xml = tmp_path / "prb.xml"
+    xml.write_text(tiny_scene('<integrator type="prb"/>',
+                              '<shape type="lgsurface" id="knot"><string name="surface" value="torus"/></shape>'))
     assert cli.main(["render", str(xml), "-o", str(tmp_path / "x.png")]) == 0
     lines = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln]
     assert len(lines) == 1, lines
@@ -164,14 +170,9 @@ def test08_volpath_on_media_without_lgsurfaces_is_quiet():
 def test09_command_line_reports_media(tmp_path, capsys):
     # Oracle: the medium's shape id in the scene file, one warning line.
     xml = tmp_path / "fog.xml"
-    xml.write_text("""<scene version="3.0.0">
-    <integrator type="lg_path"/>
-    <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="4"/>
-        <integer name="height" value="4"/></film>
-        <sampler type="independent"><integer name="sample_count" value="1"/></sampler></sensor>
-    <shape type="sphere" id="cloud"><bsdf type="null"/>
-        <medium type="homogeneous" name="interior"/></shape>
-</scene>""")
+    xml.write_text(tiny_scene('<integrator type="lg_path"/>',
+                              '<shape type="sphere" id="cloud"><bsdf type="null"/>'
+                              '<medium type="homogeneous" name="interior"/></shape>'))
     assert cli.main(["render", str(xml), "-o", str(tmp_path / "x.png")]) == 0
     lines = [ln for ln in capsys.readouterr().err.splitlines() if "warning" in ln]
     assert len(lines) == 1, lines

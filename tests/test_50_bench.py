@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 import lgshape  # noqa: F401  (before mitsuba / drjit)
-from lgshape import stability
+from lgshape.bench import stability
 from lgshape.surfaces import LIBRARY, Implicit, sphere
 
 RECORD_FIELDS = ("surface", "method", "setting", "mrays_per_s", "evals_per_ray", "memory_bytes",
@@ -39,7 +39,8 @@ DOMAIN_CASES = {*(f"scaled_{s}_{k:g}" for s in ("sphere", "torus") for k in stab
                 "exp_wall", "pow200", "hemisphere", "inverse_pole", "log_edge", "undefined_gap",
                 "sdf_box", "sdf_round_box", "sdf_capsule", "sdf_cylinder",
                 "sdf_smooth_union_poly", "sdf_smooth_union_lse", "far_sphere",
-                "far_small_sphere", "far_small_sphere_origin", "degenerate_rays"}
+                "far_small_sphere", "far_small_sphere_origin", "degenerate_rays",
+                *(f"table_far_{off:g}" for off in stability.TABLE_OFFSETS), "table_grazing_mixed"}
 
 
 def test01_nearest_root_matches_closed_form(rng):

@@ -3,7 +3,7 @@
 Oracles: the float64 reference of the temporal benchmark,
 :func:`lgshape.bench.temporal.spikes_reference` (a windowed float64 scan of
 the spikes' f with bisection), checked here against the plain dense float64
-scan :func:`lgshape.stability.nearest_root` (40000 steps along the whole ray
+scan :func:`lgshape.bench.stability.nearest_root` (40000 steps along the whole ray
 in the box), and used as the oracle of the quick run: lgshape has no wrong
 thin-feature pixel (a pixel whose float64 hit point is on a spike) in any
 frame. The flicker measure on hand-worked frames (a pixel that a method
@@ -23,7 +23,8 @@ import OpenEXR
 import pytest
 
 from lgshape.bench import temporal as bt
-from lgshape import cli, stability
+from lgshape import cli
+from lgshape.bench import stability
 
 FIELDS = ("method", "setting", "mrays_per_s", "wrong_feature_per_frame",
           "wrong_feature_pixels_per_frame", "wrong_pixels_per_frame", "frames_with_wrong_feature",

@@ -36,6 +36,7 @@ import lgshape  # noqa: F401  (before mitsuba: sets up libLLVM)
 import numpy as np
 import OpenEXR
 import pytest
+from conftest import sensor_xml
 
 from lgshape import cli, frames, render
 
@@ -45,15 +46,7 @@ SCENE = """<scene version="3.0.0">
     <default name="angle" value="0"/>
     <default name="R" value="1"/>
     <integrator type="lg_path"><integer name="max_depth" value="3"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="40"/>
-        <transform name="to_world"><lookat origin="0, -4, 2" target="0, 0, 0" up="0, 0, 1"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
-        <film type="hdrfilm">
-            <integer name="width" value="$res"/><integer name="height" value="$res"/>
-            <rfilter type="box"/>
-        </film>
-    </sensor>
+    """ + sensor_xml("0, -4, 2", up="0, 0, 1") + """
     <emitter type="constant"/>
     <shape type="lgsurface">
         <string name="surface" value="torus"/>

@@ -8,7 +8,7 @@ DIR/results.json, DIR/charts/ and DIR/BENCHMARKS.md
 (:mod:`lgshape.bench.report`). Its sections:
 
 - accuracy on primary rays and the stability suite
-  (:mod:`lgshape.bench.accuracy`, with :mod:`lgshape.stability`);
+  (:mod:`lgshape.bench.accuracy`, with :mod:`lgshape.bench.stability`);
 - speed: camera, incoherent and shadow rays, a render, first-image latency
   (:mod:`lgshape.bench.speed`; alone: ``python -m lgshape.bench.speed
   --out DIR [--quick]``);

@@ -23,12 +23,12 @@ samples after a warm-up, rays and acceleration structure already built, see
 :func:`lgshape.bench.common.timed`), function evaluations per ray (where the
 method evaluates f), the memory of the acceleration structure, and, on the
 same traces (every pixel, or a regular subset of them), accuracy against a
-float64 reference (:func:`lgshape.stability.nearest_root`: polynomial roots
+float64 reference (:func:`lgshape.bench.stability.nearest_root`: polynomial roots
 for algebraic surfaces, a dense scan otherwise): the fraction of pixels with
 a wrong hit or miss, the depth error |t - t_ref| in box diagonals over the
 pixels both hit (mean and max), and the mean angle between the method's
 normal line and the float64 gradient at the reference hit (degrees; a NaN
-normal counts 90). Then the stability suite (:mod:`lgshape.stability`) on
+normal counts 90). Then the stability suite (:mod:`lgshape.bench.stability`) on
 the same methods, one setting each (:func:`bench_stability`).
 """
 from __future__ import annotations
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import stability
+from . import stability
 from ..camera import primary_rays
 from ..surfaces import LIBRARY
 from ..trace import DEFAULT_DEPTH

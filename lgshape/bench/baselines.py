@@ -36,7 +36,7 @@ import numpy as np
 from ..arraymath import DrJitMath
 from ..expr import evaluate, gradient
 from ..grid import clip_to_box
-from ..trace import FREEZE_LIMIT, RayResult, _rays, call_frozen
+from ..trace import FREEZE_LIMIT, RayResult, call_frozen, check_rays
 from .common import Runner, empty_runner, f_normals, global_L, mitsuba_mesh, plain_surface, \
     read_ray_result
 
@@ -44,7 +44,7 @@ from .common import Runner, empty_runner, f_normals, global_L, mitsuba_mesh, pla
 # ---- Ray marchers -------------------------------------------------------------------
 
 def _setup(surface, o, d, t_min, t_max):
-    o, d, _ = _rays(o, d, t_min, t_max, True)
+    o, d, _ = check_rays(o, d, t_min, t_max, True)
     Float = type(o.x)
     t0, t1 = clip_to_box(o, d, [float(v) for v in surface.lo], [float(v) for v in surface.hi],
                          t_min, t_max)

@@ -16,7 +16,7 @@ import os
 import sys
 import time
 
-from .. import stability
+from . import stability
 from ..surfaces import LIBRARY
 from . import scale, speed, temporal
 from .accuracy import FULL, QUICK, accuracy_subset, bench_stability, bench_surface

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import os
 
-from .. import stability
+from . import stability
 from . import scale, speed, temporal
 from .accuracy import DEFAULT_LG
 from .common import METHOD_STYLE, VARIANT, fmt, pct

@@ -22,7 +22,7 @@ below e^-40 and f > 0, so the first root lies in those windows (or in a thin
 shell just outside the core, inside which f <= 0); each window is sampled
 every ``scan_step`` (2e-4, a hundredth of a spike's width at its base, in
 units of t) and the first sign change bisected to float64 precision. It is
-checked in the tests against :func:`lgshape.stability.nearest_root`'s plain
+checked in the tests against :func:`lgshape.bench.stability.nearest_root`'s plain
 dense scan. It is the same for every method.
 
 **Metrics**, per method (a record per method and setting):
@@ -67,7 +67,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .. import stability
+from . import stability
 from ..camera import look_rays
 from ..expr import evaluate, gradient
 from ..reference import clip_to_box
@@ -165,7 +165,7 @@ def spikes_reference(spec: Implicit, o, d, core=CORE, width=WIDTH, axes=SPIKE_AX
     ``spikes`` surface with these ``core``, ``width`` and ``axes``) along
     each ray o + t d in its box: a windowed scan (see the module text) with
     bisection of the first sign change. f is evaluated from ``spec.expr``
-    in float64 (:func:`lgshape.stability.numpy_f`)."""
+    in float64 (:func:`lgshape.bench.stability.numpy_f`)."""
     o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
     lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
     F = stability.numpy_f(spec.expr)

@@ -21,7 +21,10 @@ non-constant) take their arguments' ranges (:func:`quad_range`) through
 the interval rules of :mod:`lgshape.interval` and give a constant form;
 min, max and abs keep the form of the argument that provably wins (or its
 sign), else do the same. For a distance such as sqrt((x-a)^2 + ...) - r the
-range is exact up to rounding, since the square sum is exact.
+range is exact up to rounding, since the square sum is exact. The slope of
+such a distance, U' / (2 sqrt U) with U = v_1^2 + ... + v_k^2, has no
+finite interval rule where U's range reaches 0; there it is bounded by
+Cauchy-Schwarz, |sum v_i v_i'| / |v| <= |v'| (:func:`_norm_bound`).
 
 Rounding: the coefficients are computed in the array's precision, rounded
 to nearest; each op adds to R a bound of the rounding of every term it
@@ -38,7 +41,7 @@ import math
 from .. import interval as iv
 from ..arraymath import powi, zero_like
 from .evaluate import _lookup, constant
-from .node import Expr, topological
+from .node import Expr, product_chain, topological
 from . import ops
 from .ops import OPS
 
@@ -486,6 +489,173 @@ def _node(seg: Segment, n: Expr, args, exact):
 _POLYNOMIAL = frozenset(("add", "sub", "mul", "neg", "pow"))
 
 
+def _selection(n: Expr):
+    """(c, x, y) where n is y + step(c) (x - y), else None: the derivative
+    rule of min and max (:mod:`.ops`), the slope of the side that wins,
+    x where c > 0 and y where c <= 0."""
+    if n.op != "add":
+        return None
+    for y, p in (n.args, n.args[::-1]):
+        if p.op != "mul":
+            continue
+        for s, dxy in (p.args, p.args[::-1]):
+            if s.op == "step" and dxy.op == "sub" and dxy.args[1] is y:
+                return s.args[0], dxy.args[0], y
+    return None
+
+
+def _selected(seg: Segment, c, x, y, form: Quad) -> Quad:
+    """The form of y + step(c) (x - y) (``form``, from its ops) where c's
+    sign is unknown on the segment; x's own form where c > 0 there, y's where
+    c <= 0. Taken op by op, y + 1 (x - y) is x widened by twice y's
+    remainder: the slope bound of a union took the remainder of every row
+    that loses to an earlier one (a torus's, where a box won), and a ray
+    grazing the box was split to widths of 1e-4 (capped at 4096)."""
+    m = seg.m
+    q = [v if isinstance(v, Quad) else _plain(m, v) for v in (c, x, y)]
+    rc = quad_range(seg, q[0])
+    return _select(m, rc.lo > 0, q[1], _select(m, rc.hi <= 0, q[2], form))
+
+
+#: Bounds on the size of a quotient :func:`_norm_quotient` takes apart
+#: (squares under the root, terms of the numerator, nodes of a product).
+_NORM_MAX_SQUARES, _NORM_MAX_TERMS, _NORM_MAX_CHAIN = 8, 32, 32
+
+_NORM_CACHE: dict = {}
+
+
+def _norm_quotient(n: Expr):
+    """(divisor constants, number of squares, terms) where n is
+    A / (c sqrt(U)) with U = v_1^2 + ... + v_k^2 (each a product of a node
+    by itself, or its square) and A a sum or difference of terms, each a
+    product with one of the v_i as a factor: per term (i, the other
+    factors); else None. The derivative rule of sqrt, A = U' (:mod:`.ops`),
+    gives such quotients for every distance sqrt(v_1^2 + ... + v_k^2), with
+    A = 2 v_1 v_1' + ... + 2 v_k v_k'. Nodes are interned (never freed), so
+    the parse is kept by id."""
+    hit = _NORM_CACHE.get(id(n))
+    if hit is None:
+        hit = _NORM_CACHE[id(n)] = (n, _parse_norm_quotient(n) if n.op == "div" else None)
+    return hit[1]
+
+
+def _parse_norm_quotient(n: Expr):
+    A, D = n.args
+    chain = product_chain(D, lambda e: e.op == "const", _NORM_MAX_CHAIN)
+    if chain is None or len(chain[2]) != 1 or chain[2][0].op != "sqrt":
+        return None
+    dconsts = tuple(chain[1])
+    index, stack = {}, [chain[2][0].args[0]]
+    while stack:
+        e = stack.pop()
+        if e.op == "add":
+            stack.extend(e.args)
+            continue
+        if e.op == "mul" and e.args[0] is e.args[1]:
+            v = e.args[0]
+        elif e.op == "pow" and e.param == 2:
+            v = e.args[0]
+        else:
+            return None
+        index.setdefault(id(v), len(index))
+        if len(index) > _NORM_MAX_SQUARES:
+            return None
+    terms, stack = [], [A]
+    while stack:
+        e = stack.pop()
+        if e.op in ("add", "sub"):
+            stack.extend(e.args)
+            continue
+        if e.op == "neg":
+            stack.append(e.args[0])
+            continue
+        # the term as +-(f_1 f_2 ...), constants among the factors
+        chain = product_chain(e, lambda _: False, _NORM_MAX_CHAIN)
+        if chain is None:
+            return None
+        factors = chain[2]
+        j = next((j for j, f in enumerate(factors) if id(f) in index), None)
+        if j is None or len(terms) == _NORM_MAX_TERMS:
+            return None
+        terms.append((index[id(factors[j])], tuple(factors[:j] + factors[j + 1:])))
+    return dconsts, len(index), tuple(terms)
+
+
+def _norm_bound(seg: Segment, parsed, memo, form: Quad) -> Quad:
+    """The form of A / (c sqrt(U)) (:func:`_norm_quotient`; ``form``, from
+    the op's rule) where that is not finite (U's range reaches 0: a ray
+    along a box's face, where max(q, 0) = 0 or q's sign is unknown to
+    rounding): the constant form 0 +- B, B = |X| / |c| rounded up, with
+
+        |A| / (|c| sqrt(U)) <= sum_i |v_i| X_i / (|c| |v|) <= |X| / |c|
+
+    (v the distinct v_i, sqrt(U) >= |v|; Cauchy-Schwarz), X_i the sum over
+    v_i's terms of the product of the magnitudes of their other factors
+    (from those factors' forms' ranges, which hold at every point of the
+    segment). That holds wherever the quotient is defined (U > 0), an
+    algebraic fact of the structure. For A = U' (the slope of a distance
+    |v| = sqrt(U) along the ray) it bounds that slope where U > 0, and where
+    U = 0 |v| is at its minimum 0, so its slope there (where it has one) is
+    0: |v| is B-Lipschitz on the segment, and the mean-value form over it
+    stays sound across the points where U = 0. The op's rule is unbounded
+    wherever U's range reaches 0 (as the slope of sqrt u is): a ray with a
+    zero (or 1e-8) direction component along a box's face, where F is
+    constant to rounding, had no slope bound there (no mean-value form, no
+    monotonicity) and was split down to the minimum width all along the
+    face (4096 iterations). Where the op's form is finite it is kept."""
+    m = seg.m
+    dconsts, k, terms = parsed
+    # (the op's rule gives R = inf where it has no finite bound)
+    bad = ~(form.R < math.inf)
+
+    def mag(node):
+        v = memo[id(node)]
+        r = quad_range(seg, v if isinstance(v, Quad) else _plain(m, v))
+        return m.maximum(m.abs(r.lo), m.abs(r.hi))
+
+    def bound():
+        X = [None] * k
+        ops_ = 0                    # roundings, each at most u / 2 relative
+        for i, others in terms:
+            p = None
+            for f in others:
+                a = mag(f)
+                p = a if p is None else p * a
+            p = zero_like(seg.r) + 1.0 if p is None else p
+            X[i] = p if X[i] is None else X[i] + p
+            ops_ += len(others)
+        X = [zero_like(seg.r) if x is None else x for x in X]
+        if k == 1:
+            B = X[0]
+        else:
+            # |X| = M sqrt(sum (X_i / M)^2), M = max X_i: no under- or
+            # overflow of the squares
+            M = X[0]
+            for x in X[1:]:
+                M = m.maximum(M, x)
+            Ms = m.select(M > 0, M, 1.0)
+            s = None
+            for x in X:
+                q = x / Ms
+                s = q * q if s is None else s + q * q
+            B = m.select(M < math.inf, M * m.sqrt(s + k * m.tiny), math.inf)
+            B = m.select(M > 0, B, 0.0)
+            ops_ += 4 * k + 2
+        C = None                    # |c|, rounded down
+        for c in dconsts:
+            a = m.abs(memo[id(c)])
+            C = a if C is None else C * a
+        if C is not None:
+            ops_ += 2 * len(dconsts)
+            C = C * (1.0 - (len(dconsts) + 1) * m.u)
+            B = m.select(C > 0, B / m.select(C > 0, C, 1.0), math.inf)
+        B = B * (1.0 + (ops_ + 2) * m.u) + m.tiny
+        z = zero_like(B)
+        return Quad(z, z, z, m.select(m.isnan(B), math.inf, B))
+    new = _mixed(seg, bad, bound)
+    return _select(m, bad, new, form)
+
+
 def evaluate_quadratic(roots, env: dict, seg: Segment, memo=None):
     """Quadratic forms of ``roots`` (an Expr or a list) over the segment.
 
@@ -523,6 +693,12 @@ def evaluate_quadratic(roots, env: dict, seg: Segment, memo=None):
                 continue
             exact = [id(a) not in inexact for a in n.args]
             memo[id(n)] = _node(seg, n, args, exact)
+            sel = _selection(n)
+            if sel is not None:
+                memo[id(n)] = _selected(seg, *(memo[id(v)] for v in sel), memo[id(n)])
+            quo = _norm_quotient(n)
+            if quo is not None:
+                memo[id(n)] = _norm_bound(seg, quo, memo, memo[id(n)])
             if n.op not in _POLYNOMIAL or not all(exact):
                 inexact.add(id(n))
     out = [memo[id(r)] if isinstance(memo[id(r)], Quad) else _plain(m, memo[id(r)])

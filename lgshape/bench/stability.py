@@ -29,11 +29,15 @@ The cases (:func:`cases`) come in two groups (:data:`GROUPS`):
   x^200), partly undefined f (a sqrt height field, a pole, a log domain edge,
   a sign change across an undefined gap), signed-distance primitives built
   with min / max / abs / sqrt (box, rounded box, capsule, capped cylinder,
-  smooth unions), spheres far from the origin, and degenerate rays (zero,
-  infinite or NaN direction, NaN or infinite origin). Their oracles are
-  closed-form wherever one exists (ray / plane, sphere, slab, cylinder, and
-  the union of those pieces for a capsule or a rounded box), otherwise a
-  float64 scan whose step is given with the case.
+  smooth unions), spheres far from the origin, degenerate rays (zero,
+  infinite or NaN direction, NaN or infinite origin), and many primitives
+  on the table path (a written-out union of 16 spheres and 16 rounded boxes
+  1e4 and 1e6 from the origin; one of 16 rounded boxes and 16 tori about
+  the origin with rays grazing it, parallel to the boxes' faces). Their
+  oracles are closed-form wherever one exists (ray / plane, sphere, slab,
+  cylinder, the union of those pieces for a capsule or a rounded box, a
+  torus's quartic, and for a union the first boundary point of its parts'
+  intervals), otherwise a float64 scan whose step is given with the case.
 
 A case may judge lgshape on its float64 ``t64`` (:attr:`Case.judge_t64`)
 where the float32 t cannot carry the tolerance (its ulp(t) / 2 is larger):
@@ -47,10 +51,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .expr import evaluate, gradient, hessian, parse, var
-from .expr.node import exp, log, maximum, minimum, sqrt
-from .reference import clip_to_box, first_sign_change, polynomial_roots
-from .surfaces import SPIKE_AXES, Implicit, kummer, sphere, spikes, torus
+from ..expr import evaluate, gradient, hessian, parse, var
+from ..expr.node import exp, log, maximum, minimum, sqrt
+from ..reference import clip_to_box, first_sign_change, polynomial_roots, rod_intervals
+from ..surfaces import SPIKE_AXES, Implicit, kummer, sphere, spikes, torus
 
 #: Degree of the algebraic library surfaces (their f is a polynomial): the
 #: reference for them is exact polynomial roots.
@@ -84,6 +88,7 @@ class Case:
     group: str = FEATURES
     judge_t64: bool = False  # lgshape judged on its float64 t64 (the search)
     lipschitz: float | None = None  # a known valid L for sphere tracing (exact SDFs: 1)
+    scene: object = None     # the table cases' primitives (:class:`TableScene`)
 
     @property
     def diagonal(self) -> float:
@@ -362,27 +367,9 @@ def _ray_slab(o, d, lo, hi):
 def _ray_rod(o, d, a, b, r):
     """Entry and exit t of the solid cylinder of radius r around the segment
     a-b, capped flat at a and b (NaN where the line misses it)."""
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    L = float(np.linalg.norm(b - a))
-    u = (b - a) / L
-    oa = o - a
-    ou, du = oa @ u, d @ u
-    op, dp = oa - ou[:, None] * u, d - du[:, None] * u
-    A = np.sum(dp * dp, 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tc = np.where(A > 0, -np.sum(op * dp, 1) / A, 0.0)
-        m = op + tc[:, None] * dp
-        disc = r * r - np.sum(m * m, 1)
-        h = np.where(A > 0, np.sqrt(np.maximum(disc, 0) / A), np.inf)
-        c0, c1 = tc - h, tc + h
-        s0, s1 = (0.0 - ou) / du, (L - ou) / du
-        parallel = du == 0
-        inside = (ou >= 0) & (ou <= L)
-        a0 = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(s0, s1))
-        a1 = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(s0, s1))
-    tn, tf = np.maximum(c0, a0), np.minimum(c1, a1)
-    ok = (disc >= 0) & (tn <= tf)
-    return np.where(ok, tn, np.nan), np.where(ok, tf, np.nan)
+    a, b = (np.asarray(v, np.float64).reshape(1, 3) for v in (a, b))
+    tn, tf = rod_intervals(o, d, a, b, np.array([float(r)]))
+    return tn[:, 0], tf[:, 0]
 
 
 def _union(pieces):
@@ -909,9 +896,242 @@ def degenerate_rays(rng, n=None):
                 "none needed: every ray is a miss (the contract)", group=DOMAIN)
 
 
+# -- many primitives: the table path ----------------------------------------
+
+@dataclass
+class TableScene:
+    """Primitives as float64 rows: spheres (c, r), capsules (a, b, r),
+    boxes (c, half sizes h, rounding; 0: sharp), tori (c, R, r) about z
+    (any of them may be empty)."""
+    spheres: np.ndarray
+    capsules: np.ndarray
+    boxes: np.ndarray
+    tori: np.ndarray
+
+    def expr(self):
+        """The union min_i d_i written out (exact distances, one structure
+        per kind: rounded and sharp boxes apart), which
+        :func:`lgshape.tables.find_tables` turns into tables (16 operands or
+        more of one structure)."""
+        terms = []
+        for cx, cy, cz, r in self.spheres:
+            terms.append(sqrt((X - cx) ** 2 + (Y - cy) ** 2 + (Z - cz) ** 2) - r)
+        for row in self.capsules:
+            a, b, r = row[:3], row[3:6], row[6]
+            ba = b - a
+            p = [X - a[0], Y - a[1], Z - a[2]]
+            h = minimum(maximum((p[0] * ba[0] + p[1] * ba[1] + p[2] * ba[2])
+                                * (1.0 / float(ba @ ba)), 0.0), 1.0)
+            terms.append(sqrt(sum((p[i] - ba[i] * h) ** 2 for i in range(3))) - r)
+        for row in self.boxes:
+            c, hh, r = row[:3], row[3:6], row[6]
+            e = _sd_box(X - c[0], Y - c[1], Z - c[2], tuple(hh - r))
+            terms.append(e - r if r > 0 else e)
+        for cx, cy, cz, R, r in self.tori:
+            terms.append(sqrt((sqrt((X - cx) ** 2 + (Y - cy) ** 2) - R) ** 2 + (Z - cz) ** 2) - r)
+        return minimum(*terms)
+
+    def bbox(self, pad=0.05):
+        lo = np.concatenate([self.spheres[:, :3] - self.spheres[:, 3:4],
+                             np.minimum(self.capsules[:, :3], self.capsules[:, 3:6])
+                             - self.capsules[:, 6:7],
+                             self.boxes[:, :3] - self.boxes[:, 3:6],
+                             self.tori[:, :3] - np.column_stack([self.tori[:, 3] + self.tori[:, 4]] * 2
+                                                                + [self.tori[:, 4]])]).min(0)
+        hi = np.concatenate([self.spheres[:, :3] + self.spheres[:, 3:4],
+                             np.maximum(self.capsules[:, :3], self.capsules[:, 3:6])
+                             + self.capsules[:, 6:7],
+                             self.boxes[:, :3] + self.boxes[:, 3:6],
+                             self.tori[:, :3] + np.column_stack([self.tori[:, 3] + self.tori[:, 4]] * 2
+                                                                + [self.tori[:, 4]])]).max(0)
+        m = pad * float((hi - lo).max())
+        return tuple(map(float, lo - m)), tuple(map(float, hi + m))
+
+    def intervals(self, o, d):
+        """(entry, exit) of every primitive's solid along the rays, closed
+        forms in float64: balls; capsules as ray / finite cylinder and its
+        end balls; rounded boxes as 3 slabs, 12 edge cylinders and 8 corner
+        balls; sharp boxes as slabs; tori from their quartic's real roots
+        (float64 polynomial roots, paired in order)."""
+        out = []
+        for cx, cy, cz, r in self.spheres:
+            out.append(_ray_ball(o, d, (cx, cy, cz), r))
+        for row in self.capsules:
+            a, b, r = row[:3], row[3:6], row[6]
+            out.append(_union([_ray_rod(o, d, a, b, r), _ray_ball(o, d, a, r), _ray_ball(o, d, b, r)]))
+        for row in self.boxes:
+            c, hh, r = row[:3], row[3:6], row[6]
+            if r == 0:
+                out.append(_ray_slab(o, d, c - hh, c + hh))
+                continue
+            pieces = []
+            for kind, a, b in _round_box_pieces(hh, r):
+                if kind == "slab":
+                    pieces.append(_ray_slab(o, d, c + a, c + b))
+                elif kind == "rod":
+                    pieces.append(_ray_rod(o, d, c + a, c + b, r))
+                else:
+                    pieces.append(_ray_ball(o, d, c + a, r))
+            out.append(_union(pieces))
+        for cx, cy, cz, R, r in self.tori:
+            e = _torus_quartic((cx, cy, cz), R, r)
+            c = np.array([cx, cy, cz])
+            # the quartic about the ray's closest approach to the centre
+            tc = -np.sum((o - c) * d, 1) / np.sum(d * d, 1)
+            w = (R + r) * 1.01
+            rt = polynomial_roots(numpy_f(e), 4, o, d, tc - 2 * w, tc + 2 * w)
+            real = np.abs(rt.imag) <= 1e-9 * w
+            t = np.sort(np.where(real, rt.real, np.nan), 1)
+            cnt = np.isfinite(t).sum(1)
+            t = np.where((cnt % 2 == 0)[:, None], t, np.nan)
+            out += [(t[:, 0], t[:, 1]), (t[:, 2], t[:, 3])]
+        return out
+
+
+def _torus_quartic(c, R, r):
+    px, py, pz = X - c[0], Y - c[1], Z - c[2]
+    q = px ** 2 + py ** 2
+    return (q + pz ** 2 + (R * R - r * r)) ** 2 - 4 * R * R * q
+
+
+def _union_roots(intervals, t0, t1):
+    """The boundary points of the union of the intervals in (t0, t1), (n, k)
+    sorted, inf padded: the roots of min_i d_i."""
+    tn = np.stack([i[0] for i in intervals], 1)
+    tf = np.stack([i[1] for i in intervals], 1)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(tn) & np.isfinite(tf) & (tf >= tn)
+        a, b = t0[:, None], t1[:, None]
+        start = (ok & (tn <= a) & (tf > a)).sum(1)
+        enter, leave = ok & (tn > a) & (tn < b), ok & (tf > a) & (tf < b)
+    ev = np.concatenate([np.where(enter, tn, np.inf), np.where(leave, tf, np.inf)], 1)
+    mk = np.concatenate([enter.astype(int), -leave.astype(int)], 1)
+    order = np.lexsort((-mk, ev), axis=1)
+    ev, mk = np.take_along_axis(ev, order, 1), np.take_along_axis(mk, order, 1)
+    cum = start[:, None] + np.cumsum(mk, 1)
+    root = (mk != 0) & ((cum - mk == 0) != (cum == 0))
+    return np.sort(np.where(root, ev, np.inf), 1)
+
+
+def _table_scene(rng, centre, kinds=("sphere", "box"), n=16, size=1.0):
+    """n primitives of each of ``kinds`` (spheres, rounded boxes, tori: one
+    table each) in the cube centre +- size; values float32 (as a scene's).
+    No remainder outside the tables: its constants would be the kernel's
+    literals, compiled anew for every case; and few kinds, since the
+    benchmark's "taylor" and seed runners compile the whole expression."""
+    c = np.asarray(centre, np.float64)
+
+    def at(k):
+        return c + size * rng.uniform(-0.8, 0.8, (k, 3))
+
+    def f32(v):
+        return np.asarray(v, np.float32).astype(np.float64).reshape(-1, v.shape[1])
+    sph, rb, tor = np.zeros((0, 4)), np.zeros((0, 7)), np.zeros((0, 5))
+    if "sphere" in kinds:
+        sph = np.column_stack([at(n), size * rng.uniform(0.06, 0.15, n)])
+    if "box" in kinds:
+        h = size * rng.uniform(0.05, 0.15, (n, 3))
+        rb = np.column_stack([at(n), h, h.min(1) * rng.uniform(0.2, 0.9, n)])
+    if "torus" in kinds:
+        R = size * rng.uniform(0.12, 0.2, n)
+        tor = np.column_stack([at(n), R, R * rng.uniform(0.2, 0.35, n)])
+    return TableScene(f32(sph), np.zeros((0, 7)), f32(rb), f32(tor))
+
+
+def _table_points(scene: TableScene, rng, n):
+    """Points on the spheres, the flat parts of the rounded boxes' faces and
+    the tori (closed forms) with their normals."""
+    kinds = [k for k, rows in (("sphere", scene.spheres), ("box", scene.boxes),
+                               ("torus", scene.tori)) if len(rows)]
+    k = rng.integers(0, len(kinds), n)
+    p, nrm = np.zeros((n, 3)), np.zeros((n, 3))
+    for j, kind in enumerate(kinds):
+        i = np.flatnonzero(k == j)
+        if kind == "sphere":
+            s = scene.spheres[rng.integers(0, len(scene.spheres), len(i))]
+            nrm[i] = _unit(rng.normal(size=(len(i), 3)))
+            p[i] = s[:, :3] + s[:, 3:4] * nrm[i]
+        elif kind == "box":
+            b = scene.boxes[rng.integers(0, len(scene.boxes), len(i))]
+            q, nq = _box_points(rng, len(i), (1.0, 1.0, 1.0))
+            p[i] = b[:, :3] + q * (b[:, 3:6] - b[:, 6:7]) + nq * b[:, 6:7]
+            nrm[i] = nq
+        else:
+            t = scene.tori[rng.integers(0, len(scene.tori), len(i))]
+            u, v = rng.uniform(0, 2 * np.pi, (2, len(i)))
+            ring = np.stack([np.cos(u), np.sin(u), np.zeros(len(i))], 1)
+            nrm[i] = np.cos(v)[:, None] * ring + np.sin(v)[:, None] * np.array([0.0, 0.0, 1.0])
+            p[i] = t[:, :3] + t[:, 3:4] * ring + t[:, 4:5] * nrm[i]
+    return p, nrm
+
+
+def _table_case(name, description, scene: TableScene, o, d, judge_t64=False):
+    spec = Implicit(name, scene.expr(), scene.bbox())
+    lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
+    diag = float(np.linalg.norm(hi - lo))
+
+    def oracle(o64, d64):
+        t0, t1 = clip_to_box(o64, d64, lo, hi)
+        r = _union_roots(scene.intervals(o64, d64), t0, np.maximum(t0, t1))
+        return r
+    o32, d32 = _f32(o), _f32(_unit(np.asarray(d, np.float64)))
+    roots = oracle(o32.astype(np.float64), d32.astype(np.float64))
+    t_ref = roots[:, 0]
+    # either answer is right where the first root is a touch: the next root
+    # within twice the search's smallest interval (2e-6 diagonals)
+    with np.errstate(invalid="ignore"):
+        tangent = np.isfinite(t_ref) & (roots[:, 1] - t_ref < 2e-6 * diag) if roots.shape[1] > 1 \
+            else np.zeros(len(t_ref), bool)
+    return Case(name, description, spec, o32, d32, 0.0, t_ref, tangent,
+                "closed form, float64: the union of every primitive's ray interval (ray / "
+                "sphere; capsule: ray / finite cylinder and end balls; rounded box: 3 slabs, 12 "
+                "edge cylinders, 8 corner balls; sharp box: slabs; torus: the quartic's float64 "
+                "roots), its first boundary point", group=DOMAIN, judge_t64=judge_t64,
+                lipschitz=1.0, scene=scene)
+
+
+def _table_far(off):
+    def build(rng, n):
+        c = (off, -off, off / 2)
+        scene = _table_scene(rng, c)
+        lo, hi = scene.bbox()
+        oc, dc = _camera(rng, 2 * n, lo, hi)
+        p, nrm = _table_points(scene, rng, n)
+        og, dg = _near_tangent(rng, p, nrm, offsets=(1e-2, 1e-3), back=1.0)
+        return _table_case(
+            f"table_far_{off:g}", f"a union written out as min(...) of 32 exact distances (16 "
+            f"spheres, 16 rounded boxes: two tables) in a cube of half size 1 centred at ({off:g}, {-off:g}, {off / 2:g}): rays from "
+            f"around it and near-tangent rays at sphere and box-face points (offsets "
+            f"1e-2, 1e-3, before the float32 rounding of the origins, whose ulp is "
+            f"{float(np.spacing(np.float32(off))):g} here); the table path, each template's "
+            f"offsets about the table's centre", scene, np.concatenate([oc, og]),
+            np.concatenate([dc, dg]))
+    build.__name__ = f"table_far_{off:g}"
+    return build
+
+
+def table_grazing_mixed(rng, n=60):
+    scene = _table_scene(rng, (0.0, 0.0, 0.0), ("box", "torus"))
+    spec_f = numpy_f(scene.expr())
+    p, nrm = _table_points(scene, rng, 8 * n)
+    on = np.abs(spec_f(*p.T)) < 1e-9          # on the union's surface (not inside another part)
+    p, nrm = p[on][:n], nrm[on][:n]
+    o, d = _near_tangent(rng, p, nrm, offsets=(1e-2, 1e-4, 1e-6), back=1.0)
+    return _table_case(
+        "table_grazing_mixed", "a union written out as min(...) of 16 rounded boxes and 16 tori "
+        "(two tables) about the origin: rays along random tangents at points of the union's "
+        "surface (flat parts of the boxes' faces: directions parallel to a face; tori), moved "
+        "off by 1e-2, 1e-4, 1e-6 outward (near misses; along a face F is tiny over a long "
+        "stretch) and "
+        "inward (shallow crossings)", scene, o, d)
+
+
 #: The case builders with their default ray counts (per spike, or per case).
 BUILDERS = ((thin_spikes, 3), (grazing, 60), (tangent, 120), (singular_cone, 100),
             (singular_kummer, 16), (steep_wall, 300), (origin_on_surface, 100), (thin_shell, 300))
+
+#: Offsets of the far table cases from the origin.
+TABLE_OFFSETS = (1e4, 1e6)
 
 #: The domain-and-scale builders (ray counts: per camera / tangent set, see each).
 DOMAIN_BUILDERS = (
@@ -921,7 +1141,8 @@ DOMAIN_BUILDERS = (
     (sdf_box, 30), (sdf_round_box, 30), (sdf_capsule, 30), (sdf_cylinder, 30),
     (_smooth_case("poly", 0.3), 60), (_smooth_case("lse", 0.1), 60),
     (far_sphere, 60), (far_small_sphere, 60), (far_small_sphere_origin, 60),
-    (degenerate_rays, 1))
+    (degenerate_rays, 1),
+    *((_table_far(off), 30) for off in TABLE_OFFSETS), (table_grazing_mixed, 40))
 
 
 def cases(seed: int = 5, scale: float = 1.0, groups=GROUPS) -> list[Case]:
