@@ -1,6 +1,6 @@
 """Mitsuba plugins of lgshape: the ``lgsurface`` shape and the ``lg_path``,
-``lg_direct`` and ``lg_aov`` integrators that render it next to native
-geometry. One file per plugin id; shared integrator code is in :mod:`.common`.
+``lg_direct``, ``lg_aov`` and ``lg_prb`` (differentiable) integrators that
+render it next to native geometry. One file per plugin id; shared integrator code is in :mod:`.common`.
 
 The last stage of the pipeline (expression -> bounds -> grid -> trace ->
 plugins): only this package and the command line import Mitsuba.
@@ -15,6 +15,7 @@ PLUGINS = {
     "lg_path": ("integrator", "LGPathIntegrator"),
     "lg_direct": ("integrator", "LGDirectIntegrator"),
     "lg_aov": ("integrator", "LGAOVIntegrator"),
+    "lg_prb": ("integrator", "LGPRBIntegrator"),
 }
 
 _registered: set[str] = set()

@@ -9,9 +9,9 @@ integrator that renders it do not fit.
 - The lg_* integrators ignore participating media: a medium on a shape
   (native or lgsurface) or on the sensor would be left out. The warning
   names the shapes (and the sensor) that carry one, and what renders media.
-- lgsurface parameters are not differentiable: a gradient enabled on one is
-  an error (:class:`NotDifferentiableError`), raised by ``params.update()``
-  and by ``mi.render``.
+- lgsurface parameters are differentiated by ``lg_prb`` only: a gradient
+  enabled on one under another integrator is an error
+  (:class:`NotDifferentiableError`, raised by ``mi.render``) naming it.
 
 The checks run in ``mi.render`` (:func:`install_render_hook`, called by
 :func:`lgshape.register_plugins`, wraps Mitsuba 3.9.1's Python
@@ -36,7 +36,8 @@ class LGShapeWarning(UserWarning):
 
 
 class NotDifferentiableError(ValueError):
-    """A gradient was enabled on a parameter of an lgsurface."""
+    """A gradient was enabled on an lgsurface parameter that the integrator
+    (or lgshape) cannot differentiate."""
 
 
 #: Mitsuba 3.9.1's C++ integrators: ``class_name()`` -> plugin name.
@@ -52,20 +53,21 @@ _CPP_INTEGRATORS = {
     "StokesIntegrator": "stokes",
 }
 
-#: Mitsuba's Python integrators live in ``mitsuba.python.ad.integrators.<plugin>``.
-_PY_PACKAGE = "mitsuba.python.ad.integrators."
+#: Mitsuba's Python integrators live in ``mitsuba.python.ad.integrators.<plugin>``
+#: (also importable as ``mitsuba.ad.integrators``).
+_PY_PACKAGES = ("mitsuba.python.ad.integrators.", "mitsuba.ad.integrators.")
 
 #: plugin name -> the lg integrator that renders the same estimate with lgsurfaces.
 INSTEAD = {
-    "path": "lg_path", "volpath": "lg_path", "volpathmis": "lg_path", "prb": "lg_path",
-    "prb_basic": "lg_path", "prbvolpath": "lg_path", "prb_projective": "lg_path",
+    "path": "lg_path", "volpath": "lg_path", "volpathmis": "lg_path", "prb": "lg_prb",
+    "prb_basic": "lg_prb", "prbvolpath": "lg_prb", "prb_projective": "lg_prb",
     "ptracer": "lg_path",
     "direct": "lg_direct", "direct_projective": "lg_direct",
     "aov": "lg_aov", "depth": "lg_aov",
 }
 
 #: The lg integrators that ignore participating media.
-NO_MEDIA = ("lg_path", "lg_direct", "lg_aov")
+NO_MEDIA = ("lg_path", "lg_direct", "lg_aov", "lg_prb")
 
 
 def integrator_name(integrator) -> str:
@@ -76,8 +78,9 @@ def integrator_name(integrator) -> str:
     if name:
         return name
     module = type(integrator).__module__ or ""
-    if module.startswith(_PY_PACKAGE):
-        return module[len(_PY_PACKAGE):].split(".")[0]
+    for package in _PY_PACKAGES:
+        if module.startswith(package):
+            return module[len(package):].split(".")[0]
     if module == "mitsuba":                              # a C++ plugin
         cls = integrator.class_name()
         return _CPP_INTEGRATORS.get(cls, cls)
@@ -175,11 +178,28 @@ def media_message(scene, integrator, sensor=None, lgs=None):
             f"as if there were none; {fix}")
 
 
-def check_gradients(scene):
+def differentiates_lgsurfaces(integrator) -> bool:
+    """Does this integrator carry derivatives with respect to lgsurface
+    parameters (``DIFFERENTIATES_LGSURFACES = True``: ``lg_prb``)?"""
+    return bool(getattr(integrator, "DIFFERENTIATES_LGSURFACES", False))
+
+
+def check_gradients(scene, integrator=None):
     """Raise :class:`NotDifferentiableError` where a gradient is enabled on
-    an lgsurface's parameter."""
-    for shape in _lg_shapes(scene):
-        shape.check_no_gradients()
+    an lgsurface's parameter and ``integrator`` (default: the scene's) does
+    not differentiate lgsurfaces."""
+    integrator = scene.integrator() if integrator is None else integrator
+    if differentiates_lgsurfaces(integrator):
+        return
+    keys = [k for shape in _lg_shapes(scene) for k in shape.gradient_keys()]
+    if not keys:
+        return
+    names = ", ".join(f"'{k}'" for k in keys)
+    raise NotDifferentiableError(
+        f"gradients are enabled on {names}, but the integrator "
+        f"'{integrator_name(integrator)}' does not differentiate lgsurface parameters "
+        f"(their gradients would stay 0): render with 'lg_prb', or call "
+        f"dr.disable_grad() on them")
 
 
 _said: set = set()
@@ -193,7 +213,7 @@ def check_render(scene, integrator=None, sensor=None, warn=None, stacklevel=2):
     if not isinstance(scene, mi.Scene):
         return
     integrator = scene.integrator() if integrator is None else integrator
-    check_gradients(scene)
+    check_gradients(scene, integrator)
     lgs = _lg_shapes(scene)
     for message in (unseen_message(scene, integrator, lgs),
                     media_message(scene, integrator, sensor, lgs)):

@@ -10,6 +10,8 @@ the integrators use Mitsuba's BSDFs and emitters unchanged.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
 
@@ -38,15 +40,20 @@ def refresh_infinite_emitters(scene: mi.Scene) -> None:
             emitter.set_scene(scene)
 
 
-def render(integrator, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-    """The lg integrators' ``render`` (``mi.render`` calls the Python method):
-    the checks of :func:`.checks.check_render` (media the integrator
-    ignores, gradients on lgsurface parameters; for a direct
-    ``integrator.render(scene)``, as ``mi.render`` checks before), then
-    :func:`refresh_infinite_emitters`, then Mitsuba's own."""
+def check(integrator, scene, sensor=0) -> None:
+    """What the lg integrators do before a render: the checks of
+    :func:`.checks.check_render` (media the integrator ignores, gradients it
+    cannot carry; for a direct ``integrator.render(scene)``, as ``mi.render``
+    checks before), then :func:`refresh_infinite_emitters`."""
     from .checks import check_render
-    check_render(scene, integrator, sensor, stacklevel=3)
+    check_render(scene, integrator, sensor, stacklevel=4)
     refresh_infinite_emitters(scene)
+
+
+def render(integrator, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+    """The lg integrators' ``render`` (``mi.render`` calls the Python
+    method): :func:`check`, then Mitsuba's own."""
+    check(integrator, scene, sensor)
     return mi.SamplingIntegrator.render(integrator, scene, sensor, seed, spp, develop, evaluate)
 
 
@@ -54,35 +61,71 @@ def render(integrator, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=Tr
 #  Combined ray queries
 # ---------------------------------------------------------------------------
 
-def ray_intersect(scene: mi.Scene, ray: mi.Ray3f, active=True) -> mi.SurfaceInteraction3f:
-    """The nearest hit along ``ray`` among native shapes and lgsurfaces, as a
-    complete surface interaction (``si.is_valid()`` is false where the ray
-    escapes). A ray spawned from an lgsurface does not hit it again at its
-    origin (see :data:`lgsurface.SELF_HIT_EPSILON`)."""
-    active = mi.Bool(active)
-    si = scene.ray_intersect(ray, ray_flags=mi.RayFlags.All, coherent=False, active=active)
-    lgs = lg_shapes(scene)
-    if not lgs:
-        return si
+@dataclass
+class Hit:
+    """The nearest hit along a ray before its surface interaction is
+    computed (what a differentiable integrator keeps from one bounce to the
+    next): ``pi``, Mitsuba's preliminary intersection with the native shapes
+    (invalid where an lgsurface is nearer), ``lg`` (0: a native shape or
+    none, k + 1: the scene's k-th lgsurface, :func:`lg_shapes`) and ``t``,
+    the nearest hit's distance (inf: none). Dr.Jit loops carry it as state."""
+    pi: object
+    lg: object
+    t: object
 
-    # ---- Nearest implicit hit in front of the native one ----
-    t_near = dr.select(si.is_valid(), si.t, ray.maxt)
-    nearest = mi.UInt32(0)                   # 0: native or none, k + 1: lgs[k]
+    def is_valid(self):
+        return dr.isfinite(self.t)
+
+    def emitter(self, scene):
+        """The area emitter of the shape hit (None lanes: none; an
+        lgsurface carries none)."""
+        return dr.select(self.lg == 0, self.pi.shape.emitter(), dr.zeros(mi.EmitterPtr))
+
+
+def ray_intersect_preliminary(scene: mi.Scene, ray: mi.Ray3f, active=True) -> Hit:
+    """The nearest hit along ``ray`` among native shapes and lgsurfaces
+    (:class:`Hit`). Each lgsurface is searched in front of the nearest hit
+    found so far; a ray spawned from an lgsurface does not hit it again at
+    its origin (see :data:`lgsurface.SELF_HIT_EPSILON`)."""
+    active = mi.Bool(active)
+    pi = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
+    t_near = dr.select(pi.is_valid(), pi.t, ray.maxt)
+    nearest = mi.UInt32(0)
     ray_k = mi.Ray3f(ray)
-    for k, shape in enumerate(lgs):
+    for k, shape in enumerate(lg_shapes(scene)):
         ray_k.maxt = t_near
         t, hit = shape.intersect(ray_k, active)
         closer = active & hit & (t < t_near)
         t_near = dr.select(closer, t, t_near)
         nearest = dr.select(closer, k + 1, nearest)
+    pi = dr.select(nearest == 0, pi, dr.zeros(mi.PreliminaryIntersection3f))
+    t = dr.select((nearest != 0) | pi.is_valid(), t_near, dr.inf)
+    return Hit(pi=pi, lg=nearest, t=t)
 
-    # ---- Surface interaction at the implicit hit ----
-    pi = dr.zeros(mi.PreliminaryIntersection3f)
-    pi.t = t_near
-    for k, shape in enumerate(lgs):
-        mine = nearest == k + 1
-        si = dr.select(mine, shape.compute_surface_interaction(ray, pi, mi.RayFlags.All, mine), si)
+
+def compute_interaction(scene: mi.Scene, ray: mi.Ray3f, hit: Hit, flags=mi.RayFlags.All,
+                        active=True) -> mi.SurfaceInteraction3f:
+    """The complete surface interaction at ``hit`` along ``ray``
+    (``si.is_valid()`` is false where there is none). Under
+    :func:`drjit.resume_grad` it follows the shapes' parameters that have
+    gradients: native shapes as Mitsuba's do, lgsurfaces through the
+    implicit-function theorem (:meth:`LGSurface.compute_surface_interaction`)."""
+    active = mi.Bool(active)
+    si = hit.pi.compute_surface_interaction(ray, flags, active & (hit.lg == 0))
+    for k, shape in enumerate(lg_shapes(scene)):
+        mine = active & (hit.lg == k + 1)
+        pi = dr.zeros(mi.PreliminaryIntersection3f)
+        pi.t = dr.select(mine, hit.t, dr.inf)
+        si = dr.select(mine, shape.compute_surface_interaction(ray, pi, flags, mine), si)
     return si
+
+
+def ray_intersect(scene: mi.Scene, ray: mi.Ray3f, active=True) -> mi.SurfaceInteraction3f:
+    """The nearest hit along ``ray`` among native shapes and lgsurfaces, as a
+    complete surface interaction (:func:`ray_intersect_preliminary`, then
+    :func:`compute_interaction`)."""
+    return compute_interaction(scene, ray, ray_intersect_preliminary(scene, ray, active),
+                               active=active)
 
 
 def ray_test(scene: mi.Scene, ray: mi.Ray3f, active=True) -> mi.Bool:
@@ -95,19 +138,21 @@ def ray_test(scene: mi.Scene, ray: mi.Ray3f, active=True) -> mi.Bool:
     return occluded
 
 
-def skip_area_emitters(scene: mi.Scene, ray: mi.Ray3f, si, active=True):
+def skip_area_emitters(scene: mi.Scene, ray: mi.Ray3f, hit: Hit, active=True):
     """Continue ``ray`` through directly visible area emitters (for
-    ``hide_emitters``): the first hit that is not an emitter, or a miss."""
-    skip = mi.Bool(active) & si.is_valid() & (si.shape.emitter() != None)  # noqa: E711
+    ``hide_emitters``): (ray, hit), the ray last spawned (its direction is
+    ``ray``'s) and its first hit that is not an emitter, or a miss."""
+    skip = mi.Bool(active) & hit.is_valid() & (hit.emitter(scene) != None)  # noqa: E711
 
-    def body(si, skip):
-        nxt = ray_intersect(scene, si.spawn_ray(ray.d), skip)
-        si = dr.select(skip, nxt, si)
-        return si, skip & si.is_valid() & (si.shape.emitter() != None)  # noqa: E711
+    def body(ray, hit, skip):
+        si = compute_interaction(scene, ray, hit, mi.RayFlags.Minimal, skip)
+        ray = dr.select(skip, si.spawn_ray(ray.d), ray)
+        hit = dr.select(skip, ray_intersect_preliminary(scene, ray, skip), hit)
+        return ray, hit, skip & hit.is_valid() & (hit.emitter(scene) != None)  # noqa: E711
 
-    si, _ = dr.while_loop((si, skip), lambda si, skip: skip, body,
-                          label="lg: skip area emitters")
-    return si
+    ray, hit, _ = dr.while_loop((mi.Ray3f(ray), hit, skip), lambda ray, hit, skip: skip, body,
+                                label="lg: skip area emitters")
+    return ray, hit
 
 
 # ---------------------------------------------------------------------------

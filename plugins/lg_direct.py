@@ -5,7 +5,8 @@ import drjit as dr
 import mitsuba as mi
 
 from . import common
-from .common import mis_weight, ray_intersect, ray_test, skip_area_emitters
+from .common import (compute_interaction, mis_weight, ray_intersect,
+                     ray_intersect_preliminary, ray_test, skip_area_emitters)
 
 
 class LGDirectIntegrator(mi.SamplingIntegrator):
@@ -70,13 +71,14 @@ class LGDirectIntegrator(mi.SamplingIntegrator):
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
                medium: mi.Medium = None, active: mi.Bool = True):
         active = mi.Bool(active)
-        si = ray_intersect(scene, ray, active)
+        hit = ray_intersect_preliminary(scene, ray, active)
+        if self.hide_emitters:
+            ray, hit = skip_area_emitters(scene, ray, hit, active)
+        si = compute_interaction(scene, ray, hit, active=active)
         L = mi.Spectrum(0)
 
         # ----------------------- Visible emitters -----------------------
-        if self.hide_emitters:
-            si = skip_area_emitters(scene, ray, si, active)
-        else:
+        if not self.hide_emitters:
             L += si.emitter(scene, active).eval(si, active)
 
         valid_ray = active & si.is_valid()

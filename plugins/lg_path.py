@@ -5,7 +5,8 @@ import drjit as dr
 import mitsuba as mi
 
 from . import common
-from .common import mis_weight, ray_intersect, ray_test, skip_area_emitters
+from .common import (compute_interaction, mis_weight, ray_intersect,
+                     ray_intersect_preliminary, ray_test, skip_area_emitters)
 
 
 class LGPathIntegrator(mi.SamplingIntegrator):
@@ -82,10 +83,10 @@ class LGPathIntegrator(mi.SamplingIntegrator):
         prev_bsdf_pdf = mi.Float(1)                          # and its BSDF pdf,
         prev_bsdf_delta = mi.Bool(True)                      # delta BSDF?
         active = mi.Bool(active)                             # Active lanes
-        si = ray_intersect(scene, ray, active)               # Current vertex
-
+        hit = ray_intersect_preliminary(scene, ray, active)
         if dr.hint(self.hide_emitters, mode="scalar"):
-            si = skip_area_emitters(scene, ray, si, active)
+            ray, hit = skip_area_emitters(scene, ray, hit, active)
+        si = compute_interaction(scene, ray, hit, active=active)    # Current vertex
 
         while dr.hint(active, max_iterations=self.max_depth, label="lg_path"):
             bsdf = si.bsdf(ray)

@@ -24,6 +24,9 @@ import mitsuba as mi
 
 import lgshape
 from lgshape import surfaces
+from lgshape.arraymath import DrJitMath
+from lgshape.expr import evaluate, gradient
+from lgshape.expr.node import topological
 from lgshape.expr.parser import free_names
 
 #: Relative distance (times the world box diagonal) below which a ray does not
@@ -105,8 +108,8 @@ class LGSurface(mi.Mesh):
          in ``twosided`` for surfaces seen from both sides (open, clipped or
          periodic ones). Area emitters are not supported.
 
-    The surface is rendered by the ``lg_path``, ``lg_direct`` and ``lg_aov``
-    integrators; Mitsuba's own integrators (``path``, ``volpath``, ``prb``,
+    The surface is rendered by the ``lg_path``, ``lg_direct``, ``lg_aov`` and
+    ``lg_prb`` integrators; Mitsuba's own integrators (``path``, ``volpath``, ``prb``,
     ``direct``, ``aov``, ...) do not see it, and ``mi.render`` (wrapped by
     :func:`lgshape.register_plugins`) and ``lgshape render`` warn when one
     renders a scene with lgsurfaces (:mod:`lgshape.plugins.checks`). The lg
@@ -115,21 +118,22 @@ class LGSurface(mi.Mesh):
     renders both yet.
 
     **Scene parameters.** ``mi.traverse`` shows ``<id>.to_world``
-    (``AffineTransform4f``) and every numeric parameter of f as a
-    ``Float64``: a library surface's parameters (``<id>.R``), an expression's
+    (``AffineTransform4f``) and every numeric parameter of f as a float32
+    ``Float``: a library surface's parameters (``<id>.R``), an expression's
     named constants (``<id>.radius``), a primitives file's ``smoothness`` or
     ``threshold``; and those of its BSDF (``<id>.bsdf....``) and media.
-    The surface's own are not differentiable in this version (flagged
-    ``NonDifferentiable``): ``dr.enable_grad`` on one makes
-    ``params.update()`` and ``mi.render`` raise
-    :class:`~lgshape.plugins.checks.NotDifferentiableError`; the BSDF's are
-    (the lg integrators evaluate Mitsuba's BSDFs, so ``mi.render``'s AD
-    reaches them). After ``params.update()`` a new
-    value of a parameter of f builds a new :class:`lgshape.Surface` (its
-    compiled kernels are reused: its constants are opaque), a new
-    ``to_world`` only new matrices and bounds; the render then equals that
-    of a scene loaded with the new values. The placeholder triangle's keys
-    (``vertex_positions``, ``faces``, ...) are not listed.
+    The surface's own are differentiable (and discontinuous: they move
+    silhouettes) under ``lg_prb``: the search stays detached and a hit is
+    attached to them by the implicit-function theorem
+    (:meth:`compute_surface_interaction`); other integrators refuse a
+    render with a gradient on one
+    (:class:`~lgshape.plugins.checks.NotDifferentiableError`). After
+    ``params.update()`` a new value of a parameter of f builds a new
+    :class:`lgshape.Surface` (its compiled kernels are reused: its
+    constants are opaque), a new ``to_world`` only new matrices and bounds;
+    the render then equals that of a scene loaded with the new values. The
+    placeholder triangle's keys (``vertex_positions``, ``faces``, ...) are
+    not listed.
 
     **uv parameterization.** ``uv`` are the spherical angles of the object
     space point about the centre c of the box, with the convention of
@@ -183,7 +187,7 @@ class LGSurface(mi.Mesh):
         # one go through the same rounding.
         m32 = np.array(to_world.matrix, dtype=np.float64).astype(np.float32)
         self._to_world = mi.AffineTransform4f(mi.ScalarTransform4f(m32))
-        self._params = {k: mi.Float64(v) for k, v in self._source.values.items()}
+        self._params = {k: mi.Float(v) for k, v in self._source.values.items()}
         #: How many Surfaces this shape has built (1 after loading; one more
         #: per update that changes a parameter of f, none for to_world).
         self.builds = 0
@@ -211,9 +215,10 @@ class LGSurface(mi.Mesh):
     def traverse(self, callback):
         """The BSDF (and any medium) as children, with Mitsuba's flags, then
         ``to_world`` (an ``AffineTransform4f``) and every numeric parameter
-        of f (``Float64``: a library surface's parameters, an expression's
+        of f (a ``Float``: a library surface's parameters, an expression's
         named constants, a primitives file's ``smoothness``/``threshold``),
-        flagged non-differentiable. The placeholder mesh's own parameters
+        differentiable and discontinuous (they move the surface's
+        silhouettes). The placeholder mesh's own parameters
         (``vertex_positions``, ``faces``, ...) are not listed: they are not
         the surface's (:meth:`_set_placeholder` reaches them)."""
         if self._mesh_traversal:
@@ -222,36 +227,17 @@ class LGSurface(mi.Mesh):
                             ("exterior_medium", self.exterior_medium())):
             if child is not None:
                 callback.put(name, child, mi.ParamFlags.Differentiable)
-        flags = mi.ParamFlags.NonDifferentiable
+        flags = mi.ParamFlags.Differentiable | mi.ParamFlags.Discontinuous
         callback.put("to_world", self._to_world, flags)
         for name, value in self._params.items():
             callback.put(name, value, flags)
 
-    def check_no_gradients(self, disable=False):
-        """Raise :class:`~lgshape.plugins.checks.NotDifferentiableError` if
-        a gradient is enabled on a parameter of this surface (its
-        ``to_world`` or a parameter of f); with ``disable``, disable those
-        gradients first (``params.update()`` keeps the values in use)."""
-        from .checks import NotDifferentiableError
+    def gradient_keys(self) -> list:
+        """The keys (as ``mi.traverse`` names them) of this surface's
+        parameters that have gradients enabled."""
         values = {"to_world": self._to_world, **self._params}
-        enabled = [k for k, v in values.items() if dr.grad_enabled(v)]
-        if not enabled:
-            return
-        if disable:
-            for k in enabled:
-                dr.disable_grad(values[k])
         prefix = f"{self.id()}." if self.id() else ""
-        keys = ", ".join(f"'{prefix}{k}'" for k in enabled)
-        bsdf = f"'{prefix}bsdf.reflectance.value'"
-        raise NotDifferentiableError(
-            f"lgsurface: gradients are enabled on {keys}, but lgsurface parameters "
-            f"(to_world and the parameters of f) are not differentiable in this version of "
-            f"lgshape: the surface reads them as plain numbers (its ray search has no "
-            f"derivatives), so their gradients would stay 0. "
-            f"What the lg integrators differentiate are the parameters of Mitsuba's plugins "
-            f"they evaluate: BSDFs (e.g. {bsdf} of a diffuse BSDF), textures, emitters. "
-            + ("Their gradients were disabled again; the values in use are kept." if disable
-               else f"Call dr.disable_grad() on {keys}."))
+        return [f"{prefix}{k}" for k, v in values.items() if dr.grad_enabled(v)]
 
     def parameters_changed(self, keys=None):
         """Rebuild what changed: a new :class:`lgshape.Surface` where a
@@ -264,7 +250,6 @@ class LGSurface(mi.Mesh):
         every = not keys                                 # Mitsuba: [] means everything
         names = [k for k in self._params if every or k in keys]
         try:
-            self.check_no_gradients(disable=True)
             values = dict(self._values)
             for k in names:
                 values[k] = _read_value(k, self._params[k])
@@ -282,6 +267,8 @@ class LGSurface(mi.Mesh):
             dr.disable_grad(self._to_world)
             mi.set_property(self._to_world, mi.ScalarTransform4f(self.matrix.astype(np.float32)))
             raise
+        # the differentiable forms of f are those of the new values
+        self._ad = None
         if new_f:
             self.surface, self.source, self._values = surface, source, values
         if new_world:
@@ -375,7 +362,9 @@ class LGSurface(mi.Mesh):
     def compute_surface_interaction(self, ray: mi.Ray3f, pi, ray_flags=None, active=True):
         """A complete :class:`mitsuba.SurfaceInteraction3f` at ``pi.t`` along
         ``ray`` (``ray_flags`` is accepted for the interface; all fields are
-        always filled)."""
+        always filled). Where this surface's parameters have gradients (and
+        gradients are not suspended), t, p, n, uv and the tangents carry
+        their derivatives (:meth:`_attach`)."""
         active = mi.Bool(active) & dr.isfinite(pi.t)
         W, Winv, N = self._matrices()
         si = dr.zeros(mi.SurfaceInteraction3f)
@@ -402,7 +391,95 @@ class LGSurface(mi.Mesh):
         si.wavelengths = ray.wavelengths
         si.shape = dr.select(active, self._shape_ptr(), dr.zeros(mi.ShapePtr))
         si.prim_index = mi.UInt32(0)
+        if self.gradient_keys():                 # (none while gradients are suspended)
+            self._attach(ray, si, ok)
         return dr.select(active, si, dr.zeros(mi.SurfaceInteraction3f))
+
+    # ---- Derivatives with respect to the scene parameters -------------------
+
+    def _attach(self, ray, si, uv_ok):
+        """Attach the hit to the parameters that have gradients (in place):
+        the search is not differentiated; t, p, n, uv and the tangents get
+        the derivatives of the implicit-function theorem. With F(t, theta) =
+        f(W(theta)^-1 (o + t d); theta), the hit t0 (F = 0) moves by
+        dt = -dF / (dF/dt): t = t0 - (F - F0) / (grad f . d_obj), whose value
+        is t0 and whose derivative is that; the point, the normal
+        (W^-T grad f at the moved point) and the uv follow from t. The values
+        are those of the search (:func:`drjit.replace_grad`); only the
+        derivatives are new. Lanes without a hit, or where a derivative is
+        undefined (grad f . d = 0, grad f = 0, uv at a pole: ``uv_ok``),
+        keep the detached values there, and every input of the derivatives
+        is finite (a NaN partial times a zero adjoint would still be NaN)."""
+        f, grad_f, bound = self._ad_forms()
+        m = DrJitMath(mi.Float, bound=bound)
+        W = mi.Matrix4f(self._to_world.matrix)
+        Winv = dr.rcp(W)
+        o = dr.detach(mi.Vector3f(ray.o))
+        d = dr.detach(mi.Vector3f(ray.d))
+        o_obj, d_obj = _affine(Winv, o), _linear(Winv, d)
+        t0 = dr.detach(si.t)
+        ok = dr.isfinite(t0)
+        t0 = dr.select(ok, t0, 0.0)
+        q0 = o_obj + t0 * d_obj
+        F = evaluate(f, _point_env(q0), m)
+        g0 = mi.Vector3f(evaluate(grad_f, _point_env(q0), m))
+        slope = dr.detach(dr.dot(g0, d_obj))
+        ok &= dr.isfinite(slope) & (slope != 0)
+        t = t0 - (F - dr.detach(F)) / dr.select(ok, slope, 1.0)
+        p = o + t * d
+        q_a = _affine(Winv, p)
+        grad = mi.Vector3f(evaluate(grad_f, _point_env(q_a), m))
+        N = [[Winv[j][i] for j in range(3)] for i in range(3)]           # W^-T
+        ng = _linear(N, grad)
+        n2 = dr.squared_norm(ng)
+        n_ok = ok & (dr.detach(n2) > 0) & dr.isfinite(dr.detach(n2))
+        n = ng * dr.rsqrt(dr.select(n_ok, n2, 1.0))
+        n = -n if self.flip else n
+        uv_ok = uv_ok & n_ok
+        q_s = dr.select(uv_ok, q_a, mi.Vector3f(*self._centre()) + 1.0)   # (finite partials)
+        g_s = dr.select(uv_ok, grad, mi.Vector3f(1, 1, 1))
+        uv, dq_du, dq_dv, _ = _spherical_uv(q_s, self._centre(), g_s)
+
+        def attach(value, attached, where):
+            return dr.replace_grad(value, dr.select(where, attached, dr.detach(value)))
+        si.t = attach(si.t, t, ok)
+        si.p = attach(si.p, mi.Point3f(p), ok)
+        si.n = attach(si.n, mi.Normal3f(n), n_ok)
+        si.uv = attach(si.uv, mi.Point2f(uv), uv_ok)
+        si.dp_du = attach(si.dp_du, _linear(W, dq_du), uv_ok)
+        si.dp_dv = attach(si.dp_dv, _linear(W, dq_dv), uv_ok)
+        si.sh_frame = mi.Frame3f(si.n)
+        si.initialize_sh_frame()
+        si.wi = si.to_local(-dr.normalize(ray.d))
+
+    def _ad_forms(self):
+        """f and grad f as expressions of the object-space point, and the
+        named constants of f set by the parameters that have gradients
+        (name -> their Dr.Jit value). A parameter with a gradient that f
+        does not hold as a named constant (a library surface that computes
+        with it in Python) cannot be differentiated: an error names it."""
+        from .checks import NotDifferentiableError
+        if getattr(self, "_ad", None) is None:
+            f = self.surface.expr
+            named = {n.param[0] for n in topological([f]) if n.op == "named"}
+            self._ad = (f, list(gradient(f)), named)
+        f, grad_f, named = self._ad
+        bound = {}
+        prefix = f"{self.id()}." if self.id() else ""
+        for k, v in self._params.items():
+            if not dr.grad_enabled(v):
+                continue
+            if k == "smoothness" and {"k", "k_inverse", "k_quarter"} <= named:
+                bound.update(k=v, k_inverse=dr.rcp(v), k_quarter=0.25 * v)
+            elif k in named:
+                bound[k] = v
+            else:
+                raise NotDifferentiableError(
+                    f"lgsurface: the parameter '{prefix}{k}' has a gradient enabled, but f does "
+                    f"not hold it as a named constant ({self.source} computes with it in "
+                    f"Python), so its derivative is not known: disable its gradient, or write f "
+                    f"as an 'expr' with '{k}' as a named constant")
+        return f, grad_f, bound
 
     # ---- The ray queries in object space ------------------------------------
 
@@ -463,7 +540,10 @@ class _Source:
     ``describe(values, built)`` -> text for ``to_string``."""
 
     def __init__(self, values, build, describe, hint=""):
-        self.values, self.build, self.describe = dict(values), build, describe
+        # float32, as the scene parameters hold them (and Mitsuba's shapes
+        # theirs): a loaded value and the same value set by an update agree
+        self.values = {k: float(np.float32(v)) for k, v in values.items()}
+        self.build, self.describe = build, describe
         self.hint = hint        # appended to the unknown-parameter error
 
 
@@ -712,6 +792,10 @@ def _transform_box(matrix, box):
     corners = np.array([[(hi if (k >> a) & 1 else lo)[a] for a in range(3)] for k in range(8)])
     world = corners @ matrix[:3, :3].T + matrix[:3, 3]
     return tuple(map(float, world.min(0))), tuple(map(float, world.max(0)))
+
+
+def _point_env(q):
+    return {"x": q[0], "y": q[1], "z": q[2]}
 
 
 def _linear(M, v):

@@ -116,16 +116,18 @@ def test01_parser_named_constants():
 
 def test02_traverse_library_surface():
     # Oracle: the library function's numeric parameters (torus: R, r = 0.4
-    # by default), the loaded transform.
+    # by default) as float32 (Mitsuba's scene parameters), the loaded
+    # transform; geometry's flags (differentiable, discontinuous).
     T = transform()
     params = mi.traverse(mi.load_dict({"type": "scene", "s": {**TORUS, "to_world": T}}))
     assert {"s.to_world", "s.R", "s.r"} <= set(params.keys())
-    assert params["s.R"][0] == 0.9 and params["s.r"][0] == 0.4
-    assert isinstance(params["s.R"], mi.Float64)
+    assert params["s.R"][0] == np.float32(0.9) and params["s.r"][0] == np.float32(0.4)
+    assert isinstance(params["s.R"], mi.Float)
     assert isinstance(params["s.to_world"], mi.AffineTransform4f)
     assert np.array_equal(np.array(params["s.to_world"].matrix)[..., 0], np.array(T.matrix))
     for k in ("s.to_world", "s.R", "s.r"):
-        assert params.flags(k) & mi.ParamFlags.NonDifferentiable
+        assert params.flags(k) & mi.ParamFlags.Discontinuous
+        assert not params.flags(k) & mi.ParamFlags.NonDifferentiable
     assert "s.bsdf.reflectance.value" in params           # the BSDF stays reachable
 
 
@@ -137,14 +139,14 @@ def test03_traverse_expr_constants(tmp_path):
         "radius": 0.8, "lift": 0.25, **BOX}})
     params = mi.traverse(scene)
     for k in ("s.radius", "s.lift", "s.to_world"):
-        assert k in params and params.flags(k) & mi.ParamFlags.NonDifferentiable
+        assert k in params and params.flags(k) & mi.ParamFlags.Discontinuous
     assert not any(k in params for k in ("s.pi", "s.e", "s.x"))
-    assert params["s.radius"][0] == 0.8 and params["s.lift"][0] == 0.25
+    assert params["s.radius"][0] == np.float32(0.8) and params["s.lift"][0] == 0.25
     # the same from an expr_file
     (tmp_path / "f.txt").write_text("x^2 + y^2 + z^2 - radius^2\n")
     params = mi.traverse(mi.load_dict({"type": "scene", "s": {
         "type": "lgsurface", "expr_file": str(tmp_path / "f.txt"), "radius": 0.6, **BOX}}))
-    assert params["s.radius"][0] == 0.6
+    assert params["s.radius"][0] == np.float32(0.6)
 
 
 @pytest.mark.parametrize("props, message", [
@@ -303,7 +305,7 @@ def test11_primitives_smoothness(tmp_path):
              "smoothness": 0.1}
     scene = depth_scene(shape, res=16)
     params = mi.traverse(scene)
-    assert params["s.smoothness"][0] == 0.1
+    assert params["s.smoothness"][0] == np.float32(0.1)
     params["s.smoothness"] = 0.3
     params.update()
     fresh = depth_scene({**shape, "smoothness": 0.3}, res=16)

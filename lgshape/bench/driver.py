@@ -38,7 +38,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="skip the stability suite")
     p.add_argument("--no-speed", dest="speed", action="store_false",
                    help="skip the speed section (camera, incoherent and shadow rays against the "
-                   "sphere tracer and the mesh; the Cornell render; compile latency)")
+                   "sphere tracer and the mesh; the Cornell render and its gradient pass; "
+                   "compile latency)")
     p.add_argument("--no-scale", dest="scale", action="store_false",
                    help="skip the scale section (cost against the number of primitives)")
     p.add_argument("--no-temporal", dest="temporal", action="store_false",
@@ -72,7 +73,8 @@ def main(argv=None) -> int:
     results = {"meta": meta, "records": records, "stability": stab, "cases": notes}
     os.makedirs(os.path.join(args.out, "charts"), exist_ok=True)
     if args.speed:
-        results["speed"] = speed.run(log, quick=args.quick)
+        results["speed"] = speed.run(log, quick=args.quick,
+                                     surfaces=tuple(args.surfaces) if args.surfaces else None)
         speed.chart(results["speed"], os.path.join(args.out, "charts", "speed.png"))
     if args.scale:
         results["scale"] = scale.run(log, quick=args.quick, res=cfg.res, repeats=cfg.repeats)

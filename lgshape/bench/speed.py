@@ -52,6 +52,13 @@ do) rendered by Mitsuba's ``path`` (same ``max_depth``, ``rr_depth``); the
 median of ``render_repeats`` ``mi.render`` timings after one warm-up render.
 Target: lg_path / path at most :data:`TARGET_CORNELL`.
 
+**Gradient pass** (:func:`bench_gradients`): the same two scenes under
+``lg_prb`` and Mitsuba's ``prb``: a primal render against a gradient pass
+(``mi.render`` with parameters differentiable, ``dr.backward`` of the image
+mean), interleaved; the walls' albedo in both, and the tangle's
+``to_world`` too for lg_prb. Targets: lg_prb's gradient / primal ratio no
+worse than prb's, and at most :data:`TARGET_GRADIENT`.
+
 **First-image latency**: the default scene (``make render``'s,
 ``scenes/cornell.xml``) in a subprocess (:mod:`lgshape.bench.probe`) with
 ``HOME`` set to a fresh
@@ -507,6 +514,104 @@ def bench_cornell(cfg: SpeedConfig, log, meshes=None):
     return rec
 
 
+#: lg_prb's gradient pass on cornell.xml: at most this many times its primal.
+TARGET_GRADIENT = 3.0
+
+
+def _integrator_xml(text, kind):
+    """The scene text with its integrator's type set to ``kind``."""
+    root = ET.fromstring(text)
+    for integ in root.iter("integrator"):
+        integ.set("type", kind)
+    return ET.tostring(root, encoding="unicode")
+
+
+def time_gradients(scene, keys, spp, repeats):
+    """Primal renders and gradient passes (mi.render with the parameters
+    ``keys`` differentiable, dr.backward of the image's mean) of ``scene``,
+    interleaved round by round after a warm-up of each: {"primal_s",
+    "gradient_s", "samples", "ratio" (the median of the rounds' ratios),
+    "grad_norm"}."""
+    import drjit as dr
+    import mitsuba as mi
+    params = mi.traverse(scene)
+
+    def primal():
+        img = mi.render(scene, spp=spp, seed=0)
+        dr.eval(img)
+        dr.sync_thread()
+
+    def gradient():
+        for k in keys:
+            dr.enable_grad(params[k])
+        params.update()
+        img = mi.render(scene, params, spp=spp, seed=0, seed_grad=1)
+        dr.backward(dr.mean(img, axis=None))
+        grads = [dr.grad(params[k]) for k in keys]
+        grads = [g.matrix if isinstance(g, mi.AffineTransform4f) else g for g in grads]
+        dr.eval(grads)
+        dr.sync_thread()
+        norm = float(sum(float(np.sum(np.square(np.asarray(g, np.float64)))) for g in grads)) ** 0.5
+        for k in keys:
+            dr.disable_grad(params[k])
+        params.update()
+        return norm
+
+    primal()
+    norm = gradient()
+    rounds = {"primal": [], "gradient": []}
+    for r in range(repeats):
+        for which in (("primal", "gradient") if r % 2 == 0 else ("gradient", "primal")):
+            t0 = time.perf_counter()
+            primal() if which == "primal" else gradient()
+            rounds[which].append(time.perf_counter() - t0)
+    ratios = [g / p for g, p in zip(rounds["gradient"], rounds["primal"])]
+    return {"primal_s": float(np.median(rounds["primal"])),
+            "gradient_s": float(np.median(rounds["gradient"])),
+            "samples": rounds, "ratio": float(np.median(ratios)), "grad_norm": norm}
+
+
+def bench_gradients(cfg: SpeedConfig, log, meshes=None):
+    """Inverse rendering's cost on cornell.xml: lg_prb's gradient pass
+    against its primal, beside Mitsuba's prb on the same scene with the
+    tangle as a marching-cubes mesh (its gradient / primal ratio is the
+    anchor). The parameters: the walls' albedo (both scenes) and, for
+    lg_prb, the tangle's to_world too."""
+    import mitsuba as mi
+    meshes = dict(meshes or {})
+    defines = {"spp": str(cfg.render_spp), "resx": str(cfg.render_res),
+               "resy": str(cfg.render_res)}
+    rec = {"scene": os.path.relpath(CORNELL, ROOT), "res": cfg.render_res,
+           "spp": cfg.render_spp, "repeats": cfg.render_repeats, "mesh_res": cfg.mesh_res}
+    with tempfile.TemporaryDirectory(prefix="lgshape-grad-") as tmp:
+        def ply_for(name):
+            if name not in meshes:
+                spec = LIBRARY[name]()
+                meshes[name] = marching_mesh(spec, sample_grid(spec, cfg.mesh_res))
+            v, faces = meshes[name]
+            path = os.path.join(tmp, f"{name}.ply")
+            mitsuba_mesh(v, faces, name).write_ply(path)
+            return path
+        with open(CORNELL) as fh:
+            lg_text = _integrator_xml(fh.read(), "lg_prb")
+        mesh_text, _ = mesh_scene_xml(CORNELL, ply_for)
+        mesh_text = _integrator_xml(mesh_text, "prb")
+        cases = (("lg_prb", mi.load_string(lg_text, **defines), ["white.reflectance.value"]),
+                 ("prb", mi.load_string(mesh_text, **defines), ["white.reflectance.value"]),
+                 ("lg_prb_shape", mi.load_string(lg_text, **defines),
+                  ["white.reflectance.value", "tangle.to_world"]))
+        for key, scene, keys in cases:
+            r = time_gradients(scene, keys, cfg.render_spp, cfg.render_repeats)
+            r["parameters"] = keys
+            rec[key] = r
+            log(f"gradients {key}: primal {r['primal_s']:.3f} s, gradient pass "
+                f"{r['gradient_s']:.3f} s (x{r['ratio']:.2f}; parameters {', '.join(keys)})")
+    rec["target_ratio"] = TARGET_GRADIENT
+    rec["met_ratio"] = rec["lg_prb"]["ratio"] <= TARGET_GRADIENT
+    rec["met_anchor"] = rec["lg_prb"]["ratio"] <= rec["prb"]["ratio"]
+    return rec
+
+
 # ---- First-image latency ------------------------------------------------------------
 
 def bench_compile(cfg: SpeedConfig, log, variant=VARIANT):
@@ -572,6 +677,7 @@ def run(log=None, quick=False, surfaces=None, cornell=True, compile_latency=True
     out = {"meta": meta, "rows": rows}
     if cornell:
         out["cornell"] = bench_cornell(cfg, log, meshes)
+        out["gradients"] = bench_gradients(cfg, log, meshes)
     meshes.clear()
     if compile_latency:
         out["compile"] = bench_compile(cfg, log, variant)
@@ -763,6 +869,26 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
         L.append("")
         L.append(f"Ratio lg_path / path: **{c['ratio']:.2f}** (target at most "
                  f"{c['target']:g}: {_met(c['met'])}).\n")
+    gr = results.get("gradients")
+    if gr:
+        L.append("### Inverse rendering: gradient pass against primal\n")
+        L.append(f"`{gr['scene']}` at {gr['res']} x {gr['res']}, {gr['spp']} spp: a primal "
+                 "render and a gradient pass (`mi.render` with the parameters differentiable, "
+                 "then `dr.backward` of the image mean), interleaved, medians of "
+                 f"{gr['repeats']}; `prb` renders the same scene with the tangle as a "
+                 f"marching-cubes mesh ({gr['mesh_res']}^3 samples).\n")
+        L.append("| integrator | parameters | primal s | gradient pass s | ratio |")
+        L.append("|---|---|---|---|---|")
+        for key in ("lg_prb", "prb", "lg_prb_shape"):
+            r = gr.get(key)
+            if r:
+                L.append(f"| {key.replace('_shape', '')} | {', '.join(r['parameters'])} | "
+                         f"{r['primal_s']:.3f} | {r['gradient_s']:.3f} | {r['ratio']:.2f} |")
+        L.append("")
+        L.append(f"lg_prb's ratio {gr['lg_prb']['ratio']:.2f} against prb's "
+                 f"{gr['prb']['ratio']:.2f} ({'met' if gr['met_anchor'] else 'not met'}: no "
+                 f"worse than prb's), and at most {gr['target_ratio']:g} "
+                 f"({'met' if gr['met_ratio'] else 'not met'}).\n")
     k = results.get("compile")
     if k:
         L.append("### First-image latency\n")

@@ -1,0 +1,249 @@
+"""The ``lg_prb`` integrator: path replay backpropagation (Mitsuba's ``prb``)
+for scenes with lgsurfaces."""
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+from mitsuba.python.ad.integrators.common import RBIntegrator, solid_angle_to_area_jacobian
+
+from . import common
+from .common import (Hit, compute_interaction, mis_weight, ray_intersect_preliminary, ray_test,
+                     skip_area_emitters)
+
+
+class LGPRBIntegrator(RBIntegrator):
+    r"""
+    .. _integrator-lg_prb:
+
+    Path replay backpropagation for implicit surfaces (:monosp:`lg_prb`)
+    --------------------------------------------------------------------
+
+    .. pluginparameters::
+
+     * - max_depth
+       - |int|
+       - Longest path depth (-1: no limit). 1 renders only directly visible
+         light sources, 2 direct illumination, and so on. (Default: -1)
+     * - rr_depth
+       - |int|
+       - Path depth from which Russian roulette may end paths. (Default: 5)
+     * - hide_emitters
+       - |bool|
+       - Hide directly visible emitters. (Default: |false|)
+
+    ``lg_path``'s estimator (emitter sampling, MIS, Russian roulette) as a
+    differentiable integrator: ``mi.render(scene, params, ...)``,
+    ``dr.backward`` and ``dr.forward`` work as with Mitsuba's ``prb``, whose
+    conventions it follows (path replay: the primal pass, then a second pass
+    with the same samples that propagates the adjoint radiance vertex by
+    vertex, so memory does not grow with the path length). Its primal image
+    is ``lg_path``'s: the same samples in the same order.
+
+    It differentiates Mitsuba's plugins as ``prb`` does (BSDFs, textures,
+    emitters, native shapes' interior derivatives) and an lgsurface's own
+    parameters (``to_world`` and every numeric parameter of f): the ray
+    search stays detached and each hit is attached to the parameters by the
+    implicit-function theorem (:meth:`LGSurface.compute_surface_interaction`),
+    so shading, normals, emitter terms and the next bounce carry the
+    derivatives. Like ``prb``, it leaves out the boundary terms of moving
+    silhouettes and shadow edges (visibility gradients). Participating media
+    are ignored (and a scene with some warns).
+
+    .. tabs::
+
+        .. code-tab:: xml
+
+            <integrator type="lg_prb">
+                <integer name="max_depth" value="4"/>
+            </integrator>
+
+        .. code-tab:: python
+
+            'type': 'lg_prb',
+            'max_depth': 4
+    """
+
+    PLUGIN = "lg_prb"                   # the plugin name (:func:`.checks.integrator_name`)
+    SEES_LGSURFACES = True              # traces lgsurfaces (:func:`.checks.sees_lgsurfaces`)
+    DIFFERENTIATES_LGSURFACES = True    # (:func:`.checks.differentiates_lgsurfaces`)
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        max_depth = props.get("max_depth", -1)
+        if max_depth < -1:
+            raise ValueError("lg_prb: 'max_depth' must be -1 (no limit) or >= 0")
+        self.max_depth = 0xFFFFFFFF if max_depth == -1 else int(max_depth)
+        self.rr_depth = int(props.get("rr_depth", 5))
+        if self.rr_depth <= 0:
+            raise ValueError("lg_prb: 'rr_depth' must be > 0")
+
+    # Mitsuba's render, forward and backward passes, after the checks (media
+    # ignored) and with the infinite emitters given the scene's current
+    # bounds (:func:`.common.refresh_infinite_emitters`).
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        common.check(self, scene, sensor)
+        return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        common.check(self, scene, sensor)
+        return super().render_forward(scene, params, sensor, seed, spp)
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        common.check(self, scene, sensor)
+        return super().render_backward(scene, params, grad_in, sensor, seed, spp)
+
+    @dr.syntax
+    def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
+               δL, state_in, active: mi.Bool, **kwargs):
+        """One pass of path replay (``mode``: primal, backward or forward;
+        see ``ADIntegrator.sample``). The primal pass returns the radiance;
+        the others replay the same path, subtracting each vertex's
+        contribution from the primal radiance ``state_in`` to know what the
+        rest of the path brings, and propagate ``δL`` through each vertex's
+        differentiable terms."""
+        primal = mode == dr.ADMode.Primal
+        bsdf_ctx = mi.BSDFContext()
+
+        # --------------------- Configure loop state ----------------------
+        ray = mi.Ray3f(dr.detach(ray))
+        depth = mi.UInt32(0)                                 # Vertex depth
+        L = mi.Spectrum(0 if primal else state_in)           # Radiance (left to replay)
+        δL = mi.Spectrum(δL if δL is not None else 0)        # Adjoint radiance
+        β = mi.Spectrum(1)                                   # Path throughput
+        η = mi.Float(1)                                      # Relative IOR
+        active = mi.Bool(active)
+        valid_ray = mi.Bool(not self.hide_emitters and scene.environment() is not None)
+        hit = ray_intersect_preliminary(scene, ray, active)
+        if dr.hint(self.hide_emitters, mode="scalar"):
+            ray, hit = skip_area_emitters(scene, ray, hit, active)
+
+        ray_prev = mi.Ray3f(ray)                             # The previous vertex:
+        hit_prev = Hit(pi=dr.zeros(mi.PreliminaryIntersection3f), lg=mi.UInt32(0),
+                       t=mi.Float(dr.inf))                  # its hit,
+        si_prev = dr.zeros(mi.SurfaceInteraction3f)          # interaction,
+        bsdf_pdf_prev = mi.Float(1)                          # BSDF pdf,
+        bsdf_delta_prev = mi.Bool(True)                      # delta BSDF?
+
+        while dr.hint(active, max_iterations=self.max_depth, label=f"lg_prb ({mode.name})"):
+            active_next = mi.Bool(active)
+
+            # The vertex, following the shapes' parameters (and the previous
+            # vertex: the direction towards it moves with both)
+            with dr.resume_grad(when=not primal):
+                si = compute_interaction(scene, ray, hit, active=active)
+                if dr.hint(not primal, mode="scalar"):
+                    back = active & (depth > 0)
+                    si_prev_d = compute_interaction(scene, ray_prev, hit_prev,
+                                                    mi.RayFlags.Minimal, back)
+                    wi = si.to_local(dr.normalize(si_prev_d.p - si.p))
+                    si.wi = dr.replace_grad(si.wi, dr.select(back, wi, si.wi))
+            bsdf = si.bsdf(ray)
+
+            # ---------------------- Direct emission ----------------------
+            ds = mi.DirectionSample3f(scene, si=si, ref=si_prev)
+            em_pdf = dr.select(bsdf_delta_prev, 0.0,
+                               scene.pdf_emitter_direction(si_prev, ds, ~bsdf_delta_prev))
+            mis = mis_weight(bsdf_pdf_prev, em_pdf)
+            with dr.resume_grad(when=not primal):
+                Le = β * mis * ds.emitter.eval(si, bsdf_pdf_prev > 0)
+
+            active_next &= (depth + 1 < self.max_depth) & si.is_valid()
+
+            # ---------------------- Emitter sampling ----------------------
+            active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False,
+                                                           active_em)
+            active_em &= ds.pdf != 0
+            active_em &= ~ray_test(scene, si.spawn_ray_to(ds.p), active_em)
+            with dr.resume_grad(when=not primal):
+                if dr.hint(not primal, mode="scalar"):
+                    ds, em_weight = self._attach_emitter_sample(scene, si, ds, em_weight,
+                                                                active_em)
+                wo = si.to_local(ds.d)
+
+            # ------ Evaluate BSDF * cos(theta) and sample a direction ------
+            sample_1, sample_2 = sampler.next_1d(), sampler.next_2d()
+            with dr.resume_grad(when=not primal):
+                bsdf_val, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
+                mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
+                Lr_dir = dr.select(active_em, β * mis_em * bsdf_val * em_weight, 0.0)
+            bs, bsdf_weight = bsdf.sample(bsdf_ctx, si, sample_1, sample_2, active_next)
+
+            # ---------------------- BSDF sampling ----------------------
+            L = (L + Le + Lr_dir) if primal else (L - Le - Lr_dir)
+            ray_next = si.spawn_ray(si.to_world(bs.wo))
+            η *= bs.eta
+            β *= bsdf_weight
+            valid_ray |= active & si.is_valid() & ~mi.has_flag(bs.sampled_type,
+                                                                mi.BSDFFlags.Null)
+
+            # -------------------- Stopping criterion ---------------------
+            depth[si.is_valid()] += 1
+            β_max = dr.max(mi.unpolarized_spectrum(β))
+            rr_prob = dr.minimum(β_max * η * η, 0.95)
+            rr_active = depth >= self.rr_depth
+            rr_continue = sampler.next_1d() < rr_prob
+            β[rr_active] *= dr.rcp(rr_prob)
+            active_next &= (~rr_active | rr_continue) & (β_max != 0)
+
+            hit_next = ray_intersect_preliminary(scene, ray_next, active_next)
+
+            # -------------- Differential phase: this vertex --------------
+            if dr.hint(not primal, mode="scalar"):
+                δL = self._propagate(mode, scene, bsdf, bsdf_ctx, si, ray_next, hit_next, L,
+                                     Le, Lr_dir, δL, active_next)
+
+            # ------------------------ The next vertex ------------------------
+            ray_prev, hit_prev = ray, hit
+            si_prev = dr.detach(si, True)
+            bsdf_pdf_prev = bs.pdf
+            bsdf_delta_prev = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            ray, hit = ray_next, hit_next
+            active = active_next
+
+        return (L if primal else δL, valid_ray, [], L)
+
+    def _attach_emitter_sample(self, scene, si, ds, em_weight, active):
+        """The emitter sample's direction and weight as functions of the
+        vertex (its motion) and of the emitter's parameters: the sampled
+        emitter point stays fixed, the direction towards it and the
+        solid-angle density move with si.p (Mitsuba's prb does the same)."""
+        is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
+        is_surface = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Surface)
+        ds.d = dr.replace_grad(ds.d, dr.select(is_infinite, ds.d, dr.normalize(ds.p - si.p)))
+        value = scene.eval_emitter_direction(si, ds, active)
+        inv_pdf = dr.select(ds.pdf != 0, dr.rcp(ds.pdf), 0.0)
+        em_weight = dr.replace_grad(em_weight, value * dr.detach(inv_pdf))
+        J = solid_angle_to_area_jacobian(si.p, dr.detach(ds.p), dr.detach(ds.n),
+                                         active & is_surface)
+        return ds, em_weight * dr.relative_grad(J)
+
+    def _propagate(self, mode, scene, bsdf, bsdf_ctx, si, ray_next, hit_next, L, Le, Lr_dir,
+                   δL, active_next):
+        """The differentiable radiance leaving this vertex: its emission,
+        its emitter sample, and the rest of the path (L, already replayed
+        out of the primal value) through the BSDF value and the area
+        measure of the next vertex, which move with the parameters; then
+        δL times it, backward or forward. Returns δL (forward: with this
+        vertex's derivative added)."""
+        si_next = compute_interaction(scene, ray_next, hit_next, mi.RayFlags.Minimal,
+                                      active_next)
+        with dr.resume_grad():
+            next_ok = active_next & si_next.is_valid()
+            J = solid_angle_to_area_jacobian(si.p, si_next.p, si_next.n, next_ok)
+            wo_world = dr.replace_grad(ray_next.d, dr.select(
+                next_ok, dr.normalize(si_next.p - si.p), ray_next.d))
+            bsdf_val = bsdf.eval(bsdf_ctx, si, si.to_local(wo_world), active_next)
+            Lr_ind = L * dr.relative_grad(bsdf_val) * dr.relative_grad(J)
+            Lo = Le + Lr_dir + Lr_ind
+            if mode == dr.ADMode.Backward:
+                dr.backward_from(δL * Lo)
+                return δL
+            return δL + dr.forward_to(Lo)
+
+    def aov_names(self):
+        return []
+
+    def to_string(self):
+        depth = -1 if self.max_depth == 0xFFFFFFFF else self.max_depth
+        return f"LGPRBIntegrator[\n  max_depth = {depth},\n  rr_depth = {self.rr_depth}\n]"

@@ -1,0 +1,252 @@
+"""lg_prb: path replay backpropagation with lgsurfaces, against finite
+differences.
+
+Oracles: lg_path's image (the primal pass, bit for bit: the same samples in
+the same order); the linearity of the image in a BSDF's albedo (direct
+light only: d I / d rho = I / rho exactly); central finite differences of
+lg_path renders (the very estimator lg_prb differentiates) at the
+differential pass's seed, so that both see the same samples.
+
+The scenes move no silhouette and no shadow edge (lg_prb, like Mitsuba's
+prb, has no boundary terms): a bowl or dome that fills the view under a
+directional light, the inside of a sphere with a point light.
+
+Tolerances (per pixel, from the arithmetic): a pixel value is a sum of spp
+float32 terms of a few dozen roundings each, so two renders differ from
+their exact values by at most ``ROUND * u * |I|`` (u = 2^-24, ROUND = 256
+for the terms' roundings and the film's sum); a central difference with
+step h then carries 2 ROUND u max|I| / (2h) of rounding, and its
+truncation error (h^2 / 6 I''') is estimated by the difference against the
+step 2h (which has four times the truncation error: 4/3 |FD_h - FD_2h|
+bounds it, doubled); the AD value its own ROUND u |dI|.
+"""
+from __future__ import annotations
+
+import lgshape
+import mitsuba as mi
+import numpy as np
+import pytest
+import drjit as dr
+
+from conftest import VARIANT
+
+U = 2.0 ** -24
+ROUND = 256
+SEED, SEED_GRAD = 3, 7
+
+
+@pytest.fixture(scope="module", autouse=True)
+def variant():
+    mi.set_variant(VARIANT)
+    lgshape.register_plugins()
+    yield
+
+
+def sensor(origin, target, fov=30, res=16, spp=16):
+    return {"type": "perspective", "fov": fov,
+            "to_world": mi.ScalarTransform4f().look_at(origin, target, [0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent", "sample_count": spp}}
+
+
+def bowl_scene(integrator="lg_path", a=0.2, sign="-", shift=0.0, rho=0.5, max_depth=2):
+    """z = +-a (x^2 + y^2), filling the view from above, under the sun."""
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": integrator, "max_depth": max_depth},
+        "sensor": sensor([0, 0, 3], [0, 0, 0]),
+        "sun": {"type": "directional", "direction": [0.3, 0.2, -1.0],
+                "irradiance": {"type": "rgb", "value": 1.0}},
+        "bowl": {"type": "lgsurface", "expr": f"z {sign} a*(x^2 + y^2)", "a": a,
+                 "bbox_min": [-2, -2, -1], "bbox_max": [2, 2, 1],
+                 "to_world": mi.ScalarTransform4f().translate([shift, 0, 0]),
+                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho}}}})
+
+
+def inside_scene(integrator="lg_path", radius=1.0, max_depth=2):
+    """The library sphere seen from inside (a two-sided wall), lit by a
+    point light inside it: the whole view is the wall."""
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": integrator, "max_depth": max_depth},
+        "sensor": sensor([0.1, 0, 0], [0.1, 0, -1], fov=60),
+        "lamp": {"type": "point", "position": [0, 0.3, 0.2],
+                 "intensity": {"type": "rgb", "value": 1.0}},
+        "wall": {"type": "lgsurface", "surface": "sphere", "radius": radius,
+                 "bsdf": {"type": "twosided", "bsdf": {
+                     "type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}}}})
+
+
+def render(scene, seed=SEED):
+    return np.array(mi.render(scene, seed=seed), np.float64)
+
+
+def ad_forward(scene, key):
+    params = mi.traverse(scene)
+    dr.enable_grad(params[key])
+    params.update()
+    img = mi.render(scene, params, seed=SEED, seed_grad=SEED_GRAD)
+    dr.forward(params[key])
+    return np.array(dr.grad(img), np.float64)
+
+
+def ad_backward(scene, key, weights):
+    params = mi.traverse(scene)
+    dr.enable_grad(params[key])
+    params.update()
+    img = mi.render(scene, params, seed=SEED, seed_grad=SEED_GRAD)
+    dr.backward(dr.sum(img * mi.TensorXf(np.float32(weights)), axis=None))
+    return float(dr.grad(params[key])[0])
+
+
+def finite_difference(make, value, h):
+    """(FD_h, its error bound) of the renders make(v) at the gradient seed."""
+    def fd(step):
+        return (render(make(value + step), SEED_GRAD) - render(make(value - step), SEED_GRAD)) \
+            / (2 * step)
+    f1, f2 = fd(h), fd(2 * h)
+    peak = np.abs(render(make(value), SEED_GRAD)).max()
+    bound = 2 * ROUND * U * peak / (2 * h) + 2 * (4 / 3) * np.abs(f1 - f2)
+    return f1, bound
+
+
+def check(g, fd, bound, what):
+    tol = bound + ROUND * U * np.abs(g)
+    bad = np.abs(g - fd) > tol
+    assert not bad.any(), (f"{what}: {int(bad.sum())} pixels off; worst |AD - FD| "
+                           f"{np.abs(g - fd).max():.3g}, tolerance there "
+                           f"{tol.flat[np.argmax(np.abs(g - fd))]:.3g}")
+
+
+def test01_primal_is_lg_paths_image():
+    # Oracle: lg_path on the same scene and seed (same samples, same order),
+    # with paths of several bounces and Russian roulette; the contributions
+    # are summed in another order (up to ROUND u of the pixel).
+    for make in (lambda i: bowl_scene(i, max_depth=6), lambda i: inside_scene(i, max_depth=8)):
+        a, b = render(make("lg_path")), render(make("lg_prb"))
+        assert a.max() > 0
+        assert np.all(np.abs(a - b) <= ROUND * U * np.abs(a))
+
+
+def test02_albedo_gradient_is_the_image_over_albedo():
+    # Oracle: direct light only (max_depth 2), the image is linear in the
+    # surface's albedo rho: dI / drho = I / rho, at the gradient seed.
+    s = bowl_scene("lg_prb")
+    g = ad_forward(s, "bowl.bsdf.reflectance.value")
+    expected = render(bowl_scene("lg_path"), SEED_GRAD) / 0.5
+    assert np.abs(g - expected).max() <= ROUND * U * np.abs(expected).max() * 4
+
+
+@pytest.mark.parametrize("sign", ["-", "+"])
+def test03_shape_parameter_seen_through_shading(sign):
+    # Oracle: central differences of lg_path renders (bowl and dome, the
+    # curvature a changes every normal and hit point; no silhouette).
+    g = ad_forward(bowl_scene("lg_prb", sign=sign), "bowl.a")
+    fd, bound = finite_difference(lambda a: bowl_scene(a=a, sign=sign), 0.2, 1e-2)
+    assert np.abs(fd).max() > 0.01
+    check(g, fd, bound, f"z {sign} a r^2, d/da")
+
+
+def test04_backward_equals_forward():
+    # Oracle: the same derivative two ways: the forward image weighted by
+    # w, summed, against the backward pass of the weighted sum.
+    s = bowl_scene("lg_prb")
+    g = ad_forward(s, "bowl.a")
+    w = np.random.default_rng(2).uniform(0, 1, g.shape)
+    gb = ad_backward(bowl_scene("lg_prb"), "bowl.a", w)
+    assert abs(gb - float((g * w).sum())) <= ROUND * U * float(np.abs(g * w).sum()) * 4
+
+
+def test05_translation_in_to_world():
+    # Oracle: central differences in the translation x of to_world.
+    s = bowl_scene("lg_prb")
+    params = mi.traverse(s)
+    x = mi.Float(0.0)
+    dr.enable_grad(x)
+    params["bowl.to_world"] = mi.Transform4f().translate(mi.Vector3f(x, 0, 0))
+    params.update()
+    img = mi.render(s, params, seed=SEED, seed_grad=SEED_GRAD)
+    dr.forward(x)
+    g = np.array(dr.grad(img), np.float64)
+    fd, bound = finite_difference(lambda v: bowl_scene(shift=v), 0.0, 1e-2)
+    assert np.abs(fd).max() > 0.01
+    check(g, fd, bound, "to_world translate x")
+
+
+def test06_library_surface_parameter():
+    # Oracle: central differences in the library sphere's radius, seen from
+    # inside (the wall moves away from the lamp and the camera).
+    g = ad_forward(inside_scene("lg_prb"), "wall.radius")
+    fd, bound = finite_difference(lambda r: inside_scene(radius=r), 1.0, 1e-2)
+    assert np.abs(fd).max() > 0.01
+    check(g, fd, bound, "sphere radius, inside")
+
+
+def test07_other_integrators_refuse_surface_gradients():
+    # Oracle: the error names the parameter and lg_prb.
+    s = bowl_scene("lg_path")
+    params = mi.traverse(s)
+    dr.enable_grad(params["bowl.a"])
+    params.update()
+    from lgshape.plugins import NotDifferentiableError
+    # (try/except, not pytest.raises: see test_45's test11)
+    try:
+        mi.render(s, params)
+        message = None
+    except NotDifferentiableError as err:
+        message = str(err)
+    dr.disable_grad(params["bowl.a"])
+    assert message is not None and "'bowl.a'" in message and "lg_prb" in message
+
+
+def test08_parameters_are_differentiable_floats():
+    # Oracle: mi.traverse's flags (Mitsuba's convention: geometry
+    # parameters are Differentiable | Discontinuous).
+    params = mi.traverse(bowl_scene("lg_prb"))
+    for key in ("bowl.a", "bowl.to_world"):
+        assert params.flags(key) & int(mi.ParamFlags.Discontinuous)
+        assert not params.flags(key) & int(mi.ParamFlags.NonDifferentiable)
+    assert isinstance(params["bowl.a"], mi.Float)
+
+
+def cube_scene(integrator, wall, max_depth):
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": integrator, "max_depth": max_depth},
+        "sensor": sensor([0.1, 0, 0], [0.1, 0, -1], fov=60),
+        "lamp": {"type": "point", "position": [0, 0.3, 0.2],
+                 "intensity": {"type": "rgb", "value": 1.0}},
+        "wall": dict(wall, bsdf={"type": "twosided", "bsdf": {
+            "type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}})})
+
+
+def scaled_cube_gradient(scene):
+    """d image / d x for the mesh cube's vertices scaled by x (about 0)."""
+    params = mi.traverse(scene)
+    v0 = dr.unravel(mi.Point3f, params["wall.vertex_positions"])
+    x = mi.Float(1.0)
+    dr.enable_grad(x)
+    params["wall.vertex_positions"] = dr.ravel(v0 * x)
+    params.update()
+    img = mi.render(scene, params, seed=SEED, seed_grad=SEED_GRAD)
+    dr.forward(x)
+    return np.array(dr.grad(img), np.float64)
+
+
+def test09_native_scene_is_mitsubas_prb():
+    # Oracle: Mitsuba's prb on a scene of native shapes only (an inside
+    # view of a mesh cube that grows, indirect light included): lg_prb's
+    # replay is prb's, the same gradient image to rounding.
+    g_prb = scaled_cube_gradient(cube_scene("prb", {"type": "cube"}, 4))
+    g_lg = scaled_cube_gradient(cube_scene("lg_prb", {"type": "cube"}, 4))
+    assert np.abs(g_prb).max() > 0.01
+    assert np.all(np.abs(g_prb - g_lg) <= ROUND * U * (np.abs(g_prb) + np.abs(g_prb).max()))
+
+
+def test10_implicit_cube_is_the_mesh_cube():
+    # Oracle: Mitsuba's prb on the mesh cube scaled by x, against lg_prb on
+    # the implicit cube max(|x|, |y|, |z|) = s, d/ds at s = 1: the same
+    # surface moving the same way (direct light: the same samples).
+    g_mesh = scaled_cube_gradient(cube_scene("prb", {"type": "cube"}, 2))
+    implicit = {"type": "lgsurface", "expr": "max(abs(x), max(abs(y), abs(z))) - s", "s": 1.0,
+                "bbox_min": [-1.1] * 3, "bbox_max": [1.1] * 3}
+    g_lg = ad_forward(cube_scene("lg_prb", implicit, 2), "wall.s")
+    assert np.abs(g_mesh).max() > 0.01
+    assert np.all(np.abs(g_mesh - g_lg) <= ROUND * U * (np.abs(g_mesh) + np.abs(g_mesh).max()))
