@@ -76,6 +76,10 @@ class LGPRBIntegrator(RBIntegrator):
         self.rr_depth = int(props.get("rr_depth", 5))
         if self.rr_depth <= 0:
             raise ValueError("lg_prb: 'rr_depth' must be > 0")
+        self.boundary = bool(props.get("boundary", True))
+        self.band_width = float(props.get("band_width", 1.0))
+        if not self.band_width > 0:
+            raise ValueError("lg_prb: 'band_width' must be > 0 (pixels)")
 
     # Mitsuba's render, forward and backward passes, after the checks (media
     # ignored) and with the infinite emitters given the scene's current
@@ -86,11 +90,95 @@ class LGPRBIntegrator(RBIntegrator):
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
-        return super().render_forward(scene, params, sensor, seed, spp)
+        grad = super().render_forward(scene, params, sensor, seed, spp)
+        if self.boundary and self._moving(scene):
+            grad = grad + self._silhouettes(dr.ADMode.Forward, scene, sensor, seed, spp)
+        return grad
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
-        return super().render_backward(scene, params, grad_in, sensor, seed, spp)
+        super().render_backward(scene, params, grad_in, sensor, seed, spp)
+        if self.boundary and self._moving(scene):
+            self._silhouettes(dr.ADMode.Backward, scene, sensor, seed, spp, grad_in)
+
+    # ---- Visibility: the primary silhouettes of lgsurfaces ----------------
+
+    @staticmethod
+    def _moving(scene):
+        """The lgsurfaces whose parameters have gradients (by scene index)."""
+        return [k for k, s in enumerate(common.lg_shapes(scene)) if s.gradient_keys()]
+
+    def _silhouettes(self, mode, scene, sensor, seed, spp, grad_in=None):
+        """The boundary term of the primary silhouettes of the lgsurfaces
+        whose parameters move (relaxed over a band of ``band_width`` pixels
+        on the inside of each silhouette): with H = [S < 0] the ray's hit of
+        the surface and S its distance proxy to the silhouette
+        (:meth:`LGSurface.silhouette`), a pixel I = H L_s + (1 - H) L_b
+        moves by (L_s - L_b) dH = -(L_s - L_b) delta(S) dS; delta(S) is
+        replaced by the band's weight w (which integrates to 1 across it),
+        L_s is the hit ray's radiance and L_b that of the ray continued past
+        the surface's exit (the background the silhouette uncovers), both
+        one path sample. Forward: the gradient image of the term; backward:
+        the term's adjoint propagated (grad_in)."""
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        film = sensor.film()
+        moving = self._moving(scene)
+        lgs = common.lg_shapes(scene)
+        with dr.suspend_grad():
+            sampler, spp = self.prepare(sensor, mi.sample_tea_32(seed, 0x51)[0], spp,
+                                        self.aov_names())
+            ray, weight, pos = self.sample_rays(scene, sensor, sampler)
+            hit = ray_intersect_preliminary(scene, ray)
+            # the band's width: band_width pixels at the hit's distance
+            step = dr.norm(mi.Vector3f(ray.d_x) - mi.Vector3f(ray.d))
+            width = self.band_width * dr.detach(hit.t) * step
+            S = mi.Float(0)
+            w = mi.Float(0)
+            t_exit = mi.Float(dr.inf)
+            band = mi.Bool(False)
+            for k in moving:
+                mine = hit.lg == k + 1
+                with dr.resume_grad():
+                    S_k, w_k, te_k, band_k = lgs[k].silhouette(ray, hit.t, width, mine)
+                    S = dr.select(mine, S_k, S)
+                w, t_exit, band = (dr.select(mine, v, u) for v, u in
+                                   ((w_k, w), (te_k, t_exit), (band_k, band)))
+            L_s = self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, band)[0]
+            behind = mi.Ray3f(ray)
+            behind.o = mi.Point3f(ray(t_exit))
+            L_b = self.sample(dr.ADMode.Primal, scene, sampler, behind, None, None, band)[0]
+            jump = dr.select(band, (L_s - L_b) * weight * w, 0.0)
+            block = film.create_block()
+            block.set_coalesce(block.coalesce() and spp >= 4)
+            with dr.resume_grad():
+                term = jump * dr.select(band, -S, 0.0)
+                if mode == dr.ADMode.Backward:
+                    # the samples' adjoints: grad_in through the splat and
+                    # the weight division (as RBIntegrator.render_backward)
+                    one = dr.full(mi.Spectrum, 1.0, dr.width(ray))
+                    dr.enable_grad(one)
+                    self._splat(block, film, pos, one, ray)
+                    film.put_block(block)
+                    image = film.develop()
+                    dr.set_grad(image, grad_in)
+                    dr.enqueue(dr.ADMode.Backward, image)
+                    dr.traverse(dr.ADMode.Backward)
+                    δL = dr.grad(one)
+                    film.clear()
+                    dr.backward_from(δL * term)
+                    dr.eval()
+                    return None
+                δ = dr.forward_to(term)
+            self._splat(block, film, pos, δ, ray)
+            film.put_block(block)
+            return film.develop()
+
+    @staticmethod
+    def _splat(block, film, pos, value, ray):
+        from mitsuba.python.ad.integrators.common import ADIntegrator
+        ADIntegrator._splat_to_block(block, film, pos, value=value, weight=1.0, alpha=1.0,
+                                     aovs=[], wavelengths=ray.wavelengths)
 
     @dr.syntax
     def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
