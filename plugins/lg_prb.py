@@ -30,6 +30,17 @@ class LGPRBIntegrator(RBIntegrator):
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: |false|)
+     * - boundary
+       - |bool|
+       - Add the boundary term of the lgsurfaces' primary silhouettes (the
+         visibility gradient of moving silhouettes seen by the camera).
+         (Default: |true|)
+     * - band_width
+       - |float|
+       - Width, in pixels, of the band inside each silhouette over which
+         that term is relaxed: its bias grows with the band against the
+         silhouette's curvature radius (in pixels), its variance as the band
+         narrows. (Default: 1)
 
     ``lg_path``'s estimator (emitter sampling, MIS, Russian roulette) as a
     differentiable integrator: ``mi.render(scene, params, ...)``,
@@ -45,9 +56,12 @@ class LGPRBIntegrator(RBIntegrator):
     search stays detached and each hit is attached to the parameters by the
     implicit-function theorem (:meth:`LGSurface.compute_surface_interaction`),
     so shading, normals, emitter terms and the next bounce carry the
-    derivatives. Like ``prb``, it leaves out the boundary terms of moving
-    silhouettes and shadow edges (visibility gradients). Participating media
-    are ignored (and a scene with some warns).
+    derivatives. The primary silhouettes of moving lgsurfaces add their
+    boundary term (:meth:`_silhouettes`: relaxed over a band of
+    ``band_width`` pixels, sampled by a second set of camera rays); the
+    boundary terms of shadow edges, of silhouettes seen after a bounce and
+    of native shapes are left out (as ``prb`` leaves them out).
+    Participating media are ignored (and a scene with some warns).
 
     .. tabs::
 
