@@ -34,6 +34,10 @@ from lgshape.expr.parser import free_names
 #: left (the root search would find it again within its tolerance).
 SELF_HIT_EPSILON = 1e-4
 
+#: The ray flags that ask for uv, its tangents or the shading frame (else
+#: :meth:`LGSurface.compute_surface_interaction` fills the minimal fields).
+_SURFACE_FLAGS = int(mi.RayFlags.UV) | int(mi.RayFlags.dPdUV) | int(mi.RayFlags.ShadingFrame)
+
 _OWN = ("expr", "expr_file", "surface", "primitives", "combine", "smoothness", "threshold",
         "bbox_min", "bbox_max", "L", "G", "depth", "to_world", "flip_normals")
 
@@ -361,10 +365,11 @@ class LGSurface(mi.Mesh):
 
     def compute_surface_interaction(self, ray: mi.Ray3f, pi, ray_flags=None, active=True):
         """A complete :class:`mitsuba.SurfaceInteraction3f` at ``pi.t`` along
-        ``ray`` (``ray_flags`` is accepted for the interface; all fields are
-        always filled). Where this surface's parameters have gradients (and
-        gradients are not suspended), t, p, n, uv and the tangents carry
-        their derivatives (:meth:`_attach`)."""
+        ``ray``; with ``ray_flags`` ``RayFlags.Minimal`` (no UV, dPdUV or
+        ShadingFrame) only t, p, n, the frame about n and wi (uv 0, the
+        tangents an orthonormal frame). Where this surface's parameters have
+        gradients (and gradients are not suspended), t, p, n, uv and the
+        tangents carry their derivatives (:meth:`_attach`)."""
         active = mi.Bool(active) & dr.isfinite(pi.t)
         W, Winv, N = self._matrices()
         si = dr.zeros(mi.SurfaceInteraction3f)
@@ -377,11 +382,16 @@ class LGSurface(mi.Mesh):
         n = -n if self.flip else n
         si.n = mi.Normal3f(n)
 
-        uv, dq_du, dq_dv, ok = _spherical_uv(q, self._centre(), grad)
-        dp_du, dp_dv = _linear(W, dq_du), _linear(W, dq_dv)
         fs, ft = mi.coordinate_system(n)
-        ok &= dr.isfinite(dr.squared_norm(dp_du) + dr.squared_norm(dp_dv))
-        si.uv = mi.Point2f(uv)
+        full = ray_flags is None or bool(int(ray_flags) & _SURFACE_FLAGS)
+        if full:
+            uv, dq_du, dq_dv, ok = _spherical_uv(q, self._centre(), grad)
+            dp_du, dp_dv = _linear(W, dq_du), _linear(W, dq_dv)
+            ok &= dr.isfinite(dr.squared_norm(dp_du) + dr.squared_norm(dp_dv))
+            si.uv = mi.Point2f(uv)
+        else:
+            ok = mi.Bool(False)
+            dp_du = dp_dv = fs
         si.dp_du = dr.select(ok, dp_du, fs)
         si.dp_dv = dr.select(ok, dp_dv, ft)
         si.sh_frame = mi.Frame3f(si.n)
@@ -474,18 +484,32 @@ class LGSurface(mi.Mesh):
         t_rel, exits = self.intersect(inner, active)
         active &= exits
         t_exit = t_hit + t_rel
-        W, Winv, _ = self._matrices()
+        W, Winv, N = self._matrices()
         d_obj = _linear(Winv, d)
-        lo, hi = mi.Float(t_hit), mi.Float(t_exit)
-        for _ in range(24):                      # dF/dt < 0 at the entry, > 0 at the exit
+
+        def proxy(t):
+            """f / |grad f| (world units) at o + t d, and the slope dF/dt."""
+            q = mi.Point3f(_affine(Winv, o + t * d))
+            g = mi.Vector3f(self.surface.gradient(q))
+            norm = dr.norm(_linear(N, g))
+            return mi.Float(self.surface.value(q)) / dr.select(norm > 0, norm, 1.0), \
+                dr.dot(g, d_obj)
+        # S <= f / |grad f| anywhere on the chord: a chord whose middle is
+        # deeper than the band is no grazing hit (most hits end here)
+        active &= proxy(0.5 * (t_hit + t_exit))[0] > -width
+        # the chord's minimiser: dF/dt < 0 at the entry, > 0 at the exit
+        lo, hi = dr.select(active, t_hit, 0.0), dr.select(active, t_exit, 0.0)
+
+        def body(lo, hi, k):
             mid = 0.5 * (lo + hi)
-            g = self.surface.gradient(mi.Point3f(_affine(Winv, o + mid * d)))
-            up = dr.dot(mi.Vector3f(g), d_obj) > 0
-            hi, lo = dr.select(up, mid, hi), dr.select(up, lo, mid)
+            up = proxy(mid)[1] > 0
+            return dr.select(up, lo, mid), dr.select(up, mid, hi), k + 1
+        lo, hi, _ = dr.while_loop((mi.Float(lo), mi.Float(hi), mi.UInt32(0)),
+                                  lambda lo, hi, k: active & (k < 24), body,
+                                  label="lgsurface: silhouette chord")
         t_star = 0.5 * (lo + hi)
         p_star = o + t_star * d
         q_star = mi.Point3f(_affine(Winv, p_star))
-        N = [[Winv[j][i] for j in range(3)] for i in range(3)]
         g_world = dr.norm(_linear(N, mi.Vector3f(self.surface.gradient(q_star))))
         ok = active & (g_world > 0) & dr.isfinite(g_world)
         g_world = dr.select(ok, g_world, 1.0)
