@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "bench":
         try:
-            from . import bench
+            from . import bench         # (late: the benchmark's extra, on use)
         except ModuleNotFoundError as err:
             if err.name != "lgshape.bench":
                 raise
@@ -121,7 +121,7 @@ def render(args) -> int:
     sequence = (args.frames is not None or args.video or args.workers is not None
                 or args.cluster is not None or any(parse_range(v) for v in defines.values()))
     if sequence:
-        from . import frames
+        from . import frames            # (late: sequences only)
         return frames.cli_render(args, out, defines)
     check_output(out, ext)
     check_defines(args.scene, defines)

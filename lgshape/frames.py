@@ -274,7 +274,7 @@ def _render_on_cluster(scene, params, files, todo, spp, variant, workers, cluste
     try:
         if local is not None:
             client = Client(local)
-        from ._dask import WarmUp
+        from ._dask import WarmUp          # (late: needs the 'frames' extra)
         client.register_plugin(WarmUp(variant))
         with open(scene, encoding="utf-8") as f:
             job = {"path": os.path.abspath(scene), "text": f.read(), "spp": spp,
@@ -358,7 +358,7 @@ def write_video(out, count, fps=24.0):
     `fps` frames per second, to ``OUT.mp4`` (the stem of `out`), atomically,
     with the ffmpeg binary of the imageio-ffmpeg package; returns its path."""
     try:
-        import imageio_ffmpeg
+        import imageio_ffmpeg              # (late: the 'video' extra)
     except ImportError:
         raise CommandError("--video needs imageio-ffmpeg, lgshape's 'video' extra: "
                            "pip install 'lgshape[video]'") from None

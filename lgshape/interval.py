@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import math
 
+from .arraymath import powi
+
 
 class Interval:
     __slots__ = ("lo", "hi")
@@ -123,7 +125,6 @@ def i_div(m, a, b):
 
 
 def i_pow(m, a, n: int):
-    from .arraymath import powi
     pl, ph = powi(a.lo, n), powi(a.hi, n)
     if n % 2:
         return Interval(pl, ph)

@@ -23,7 +23,7 @@ argument cannot be told from 0; ``kink`` (a Dirac measure) is 0 as a value.
 """
 from __future__ import annotations
 
-from .arraymath import zero_like
+from .arraymath import powi, zero_like
 
 SAFETY = 1.0 + 2.0 ** -40     # covers the rounding of the error computation
 
@@ -59,7 +59,6 @@ def e_pow(m, v, a, ea, n: int):
     aa = m.abs(a)
     small = n * ea < 0.5 * aa
     rel = n * ea / m.select(small, aa, 1.0)
-    from .arraymath import powi
     e_small = m.abs(v) * (rel * (1.0 + rel) + 2.0 * n * m.u)
     e_large = 2.0 * powi(aa + ea, n) * (1.0 + 4.0 * n * m.u)
     return m.select(small, e_small, e_large)

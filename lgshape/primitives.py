@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .expr.node import Expr, const, maximum, minimum, named, sqrt, var
-from .tables import Aggregate, TableForm, make_group, param, smin_below
+from .tables import Aggregate, TableForm, make_group, param, smin_below, substitute
 
 X, Y, Z = var("x"), var("y"), var("z")
 
@@ -214,7 +214,6 @@ def _kernel(kind: str, weighted: bool):
     else:
         d = _distance(kind)                 # its last parameter is the radius: set 0
         last = {"capsule": 7, "box": 6, "torus": 4}[kind]
-        from .tables import substitute
         d = maximum(substitute(d, {f"p{last}": const(0.0)}), 0.0)
         d2 = _sq(d)
     R = param(_radius_column(kind))

@@ -15,6 +15,8 @@ import tempfile
 import time
 import xml.etree.ElementTree as ET
 
+import numpy as np
+
 from .plugins import VariantError, use_variant
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
@@ -302,7 +304,6 @@ def render_passes(mi, scene, sensor, spp, progress=None):
     with seed i; returns (image as float32 numpy array, channel names,
     seconds). ``progress(done, spp)`` after each pass (default: a progress
     bar on stderr)."""
-    import numpy as np
     bar = None
     if progress is None:
         bar = ProgressBar(spp)
@@ -327,7 +328,6 @@ def render_passes(mi, scene, sensor, spp, progress=None):
 def preview(mi, bitmap):
     """An 8-bit sRGB PNG: the colour channels; when they are all zero (an AOV
     render without a nested integrator), the first AOV, scaled to [0, 1]."""
-    import numpy as np
     layers = dict(bitmap.split())
     root = layers.pop("<root>", None)
     if root is None or (not np.any(np.array(root)) and layers):

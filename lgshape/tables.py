@@ -41,13 +41,17 @@ import math
 import re
 from dataclasses import dataclass, field
 
+import drjit as dr
 import numpy as np
 
 from . import interval as iv
 from .arraymath import NUMPY
-from .expr import evaluate_interval
-from .expr.node import Expr, const, maximum, minimum, named, topological, var
+from .expr import evaluate, evaluate_interval, evaluate_with_error
 from .expr import node as N
+from .expr.diff import DX, DY, DZ, derivative
+from .expr.node import Expr, const, maximum, minimum, named, topological, var
+from .expr.quadratic import Quad, evaluate_quadratic, quad_env, quad_range
+from .grid import row_slots
 
 #: Operands of one structure needed before an n-ary node becomes a table.
 MIN_ROWS = 16
@@ -627,7 +631,6 @@ def _code(ijk, R):
 def evaluate_points(tf: TableForm, p, chunk: int = 256) -> np.ndarray:
     """f at points p (n, 3), float64, over every row (the unpruned form,
     without building the whole expression)."""
-    from .expr import evaluate
     p = np.asarray(p, np.float64).reshape(-1, 3)
     env = {v: p[:, i, None] for i, v in enumerate("xyz")}
     out = dict((v, p[:, i]) for i, v in enumerate("xyz"))
@@ -799,9 +802,6 @@ class DeviceTables:
     groups: list
 
     def __init__(self, tf: TableForm, rows: CellRows, grid, centre, Float):
-        import drjit as dr
-        from .expr.diff import DX, DY, DZ, derivative
-        from .grid import row_slots
         self.Float = Float
         self.Float64 = dr.float64_array_t(Float)
         UInt32 = dr.uint32_array_t(Float)
@@ -863,7 +863,6 @@ class DeviceTables:
     def _coordinates(self, env, err, m64):
         """env and err with the box-local x, y, z made global (x = u + c) and
         the table-local lx, ly, lz (lx = u + (c - c_t)), with their roundings."""
-        import drjit as dr
         env, err = dict(env), dict(err)
         for i, v in enumerate("xyz"):
             u, eu = env[v], err.get(v, 0.0)
@@ -877,7 +876,6 @@ class DeviceTables:
     # -- ranges ---------------------------------------------------------------
     def ranges(self, slot, active):
         """(start, end) per group for the cells of slot (UInt32), where active."""
-        import drjit as dr
         UInt32 = dr.uint32_array_t(self.Float)
         out = []
         for grp in self.groups:
@@ -887,7 +885,6 @@ class DeviceTables:
         return out
 
     def all_rows(self, n):
-        import drjit as dr
         # opaque: the slot count (the number of bricks) is data, not kernel code
         return self.ranges(dr.opaque(dr.uint32_array_t(self.Float), self.n_slots, n), True)
 
@@ -896,8 +893,6 @@ class DeviceTables:
         """F with its error bound and dF/dt along each direction (dicts of dx,
         dy, dz; default: the one in env), over the rows of rng.
         Returns (F, eF, [g, ...])."""
-        import drjit as dr
-        from .expr import evaluate, evaluate_with_error
         Float64 = self.Float64
         dirs = directions or [{k: env[k] for k in ("dx", "dy", "dz")}]
         env, err = self._coordinates(env, err, m64)
@@ -955,9 +950,6 @@ class DeviceTables:
         evaluation). The bounds are the ranges of quadratic forms along the
         segment (:mod:`lgshape.expr.quadratic`), kept per aggregate across
         its rows. Returns (F, eF, g, (g_lo, g_hi, F_lo, F_hi))."""
-        import drjit as dr
-        from .expr import evaluate, evaluate_interval, evaluate_with_error
-        from .expr.quadratic import Quad, evaluate_quadratic, quad_env, quad_range
         Float, Float64 = self.Float, self.Float64
         dd = {k: env[k] for k in ("dx", "dy", "dz")}
         env, err = self._coordinates(env, err, m64)
@@ -1053,7 +1045,6 @@ def _round_up32(v):
 
 def _enclose32(Float, v: float, e: float = 0.0):
     """(lo, hi): opaque float32 values enclosing v +- e (float64)."""
-    import drjit as dr
     lo, hi = np.array([v]), np.array([v])
     if e > 0:
         lo, hi = np.nextafter(lo - e, -np.inf), np.nextafter(hi + e, np.inf)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from .. import interval as iv
 from ..arraymath import math_for, zero_like
+from ..pointerror import SAFETY
 from .node import Expr, topological
 from . import ops
 from .ops import OPS
@@ -147,7 +148,6 @@ def evaluate_with_error(roots, env: dict, env_error: dict, m, safety: bool = Tru
             v = op.value(m, *args, *extra)
             val[id(n)] = v
             err[id(n)] = op.error(m, v, *args, *errs, *extra)
-    from ..pointerror import SAFETY
     k = SAFETY if safety else 1.0
     out = [(val[id(r)], err[id(r)] * k) for r in roots]
     return out[0] if single else out

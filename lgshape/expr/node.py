@@ -92,7 +92,7 @@ class Expr:
         return power(self, n)
 
     def __repr__(self) -> str:
-        from .printer import to_string
+        from .printer import to_string      # (late: printer imports this module)
         return to_string(self)
 
     def __bool__(self):
@@ -220,6 +220,7 @@ def _node(op, *args, param=None) -> Expr:
         return const(v) if math.isfinite(v) else Expr(op, args, param)
     if _fold is None:
         import numpy as np
+        # (late: ops imports this module; numpy only where constants fold)
         from ..arraymath import NUMPY
         from .ops import OPS
         _fold = NUMPY, OPS, np

@@ -28,6 +28,7 @@ import math
 from ..arraymath import powi, zero_like
 from .evaluate import evaluate_with_error
 from .node import Expr, topological
+from .quadratic import Quad
 
 #: The largest degree the search takes this way (the coefficients are live
 #: state of the search loop: 2 (n + 1) float64 values a ray).
@@ -337,7 +338,6 @@ def forms(seg, cs, W, at):
     t (``at`` = |t|), from the shifted coefficients and their error bound
     (:func:`shift`): (Qf, Qg). ``seg``: a
     :class:`~lgshape.expr.quadratic.Segment` of the same precision."""
-    from .quadratic import Quad
     m, r = seg.m, seg.r
     n = len(cs) - 1
     u = m.u

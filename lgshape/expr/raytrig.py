@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from ..arraymath import zero_like
 from .evaluate import evaluate_with_error
 from .node import Expr, product_chain
+from .quadratic import Quad
 from .raypoly import ray_polynomial
 
 #: The most sinusoids a ray holds (a product of n factors gives 2^(n-1)).
@@ -236,7 +237,6 @@ def forms(seg, R: RaySinusoids, t, sinusoids):
     come from the arguments' by angle addition; the errors are B + S |t|
     (:class:`RaySinusoids`), the remainders M3 r^3 / 6 (F) and M4 r^3 / 6
     (F')."""
-    from .quadratic import Quad
     m, r = seg.m, seg.r
     u = m.u
     def clamp(v):
