@@ -77,9 +77,12 @@ class Hit:
         return dr.isfinite(self.t)
 
     def emitter(self, scene):
-        """The area emitter of the shape hit (None lanes: none; an
-        lgsurface carries none)."""
-        return dr.select(self.lg == 0, self.pi.shape.emitter(), dr.zeros(mi.EmitterPtr))
+        """The area emitter of the shape hit (None lanes: none)."""
+        out = dr.select(self.lg == 0, self.pi.shape.emitter(), dr.zeros(mi.EmitterPtr))
+        for k, shape in enumerate(lg_shapes(scene)):
+            if shape.emitter() is not None:
+                out = dr.select(self.lg == k + 1, mi.EmitterPtr(shape.emitter()), out)
+        return out
 
 
 def ray_intersect_preliminary(scene: mi.Scene, ray: mi.Ray3f, active=True) -> Hit:
@@ -153,6 +156,103 @@ def skip_area_emitters(scene: mi.Scene, ray: mi.Ray3f, hit: Hit, active=True):
     ray, hit, _ = dr.while_loop((mi.Ray3f(ray), hit, skip), lambda ray, hit, skip: skip, body,
                                 label="lg: skip area emitters")
     return ray, hit
+
+
+# ---------------------------------------------------------------------------
+#  Emitter sampling: area emitters on lgsurfaces
+# ---------------------------------------------------------------------------
+#
+# Mitsuba's area emitter samples its shape through the shape's C++
+# sample_position / pdf_position, which never reach an lgsurface (a Python
+# mesh subclass: no trampoline), so the lg integrators sample the emitters of
+# lgsurfaces themselves: the emitter is chosen as Mitsuba chooses (its
+# sampling weight), then a direction uniformly in the cone of the surface's
+# bounding sphere (of its occupied pruning cells, in world space) seen from
+# the shading point, traced: where its first hit is the surface, that hit is
+# the sample, with the cone's density, exact; elsewhere the sample is
+# occluded (the trace is its shadow test). The same density is the pdf of a
+# BSDF-sampled direction that hits the surface, for MIS.
+
+def _lg_emitters(scene):
+    """[(k, shape, index in scene.emitters())] for the lgsurfaces with an
+    area emitter."""
+    emitters = list(scene.emitters())
+    out = []
+    for k, shape in enumerate(lg_shapes(scene)):
+        em = shape.emitter()
+        if em is None:
+            continue
+        index = next(i for i, e in enumerate(emitters) if e.ptr == em.ptr)
+        out.append((k, shape, index))
+    return out
+
+
+def _cone(shape, p):
+    """(axis, cos of the cone's half angle, inside) of the shape's bounding
+    sphere seen from the points p (inside: p within the sphere, the whole
+    sphere of directions)."""
+    c, r = shape.bounding_sphere()
+    to_c = mi.Vector3f(c) - mi.Vector3f(p)
+    d2 = dr.squared_norm(to_c)
+    inside = d2 <= r * r
+    cos_max = dr.safe_sqrt(1.0 - r * r / dr.select(inside, 1.0, d2))
+    return dr.normalize(to_c), dr.select(inside, -1.0, cos_max), inside
+
+
+def _cone_pdf(cos_max):
+    return dr.rcp(2.0 * dr.pi * (1.0 - cos_max))
+
+
+def sample_emitter_direction(scene, si, sample, active=True):
+    """Emitter sampling that includes the area emitters of lgsurfaces:
+    (ds, weight, tested). As ``scene.sample_emitter_direction(si, sample,
+    False, active)`` for the scene's other emitters; for an lgsurface's,
+    the traced cone sample above: ``tested`` marks those lanes, whose
+    visibility is part of the sample (weight 0 where occluded), so that no
+    shadow ray is needed there."""
+    active = mi.Bool(active)
+    ds, weight = scene.sample_emitter_direction(si, sample, False, active)
+    tested = mi.Bool(False)
+    ours = _lg_emitters(scene)
+    if not ours:
+        return ds, weight, tested
+    index, sel_weight, reused = scene.sample_emitter(sample.x, active)
+    for k, shape, em_index in ours:
+        mine = active & (index == em_index)
+        axis, cos_max, _ = _cone(shape, si.p)
+        local = mi.warp.square_to_uniform_cone(mi.Point2f(reused, sample.y), cos_max)
+        d = mi.Frame3f(axis).to_world(local)
+        ray = si.spawn_ray(d)
+        hit = ray_intersect_preliminary(scene, ray, mine)
+        on = mine & (hit.lg == k + 1)
+        si_e = compute_interaction(scene, ray, hit, active=on)
+        em = shape.emitter()
+        ds_k = dr.zeros(mi.DirectionSample3f)
+        ds_k.p, ds_k.n, ds_k.uv = si_e.p, si_e.n, si_e.uv
+        ds_k.time = si.time
+        ds_k.d = d
+        ds_k.dist = si_e.t
+        ds_k.pdf = _cone_pdf(cos_max) * scene.pdf_emitter(em_index, mine)
+        ds_k.delta = mi.Bool(False)
+        ds_k.emitter = mi.EmitterPtr(em)
+        value = em.eval(si_e, on)
+        w = dr.select(on, value * sel_weight * dr.rcp(_cone_pdf(cos_max)), 0.0)
+        ds = dr.select(mine, ds_k, ds)
+        weight = dr.select(mine, w, weight)
+        tested |= mine
+    return ds, weight, tested
+
+
+def pdf_emitter_direction(scene, ref, ds, active=True):
+    """``scene.pdf_emitter_direction(ref, ds, active)``, with the density of
+    :func:`sample_emitter_direction` where ``ds.emitter`` is an lgsurface's."""
+    active = mi.Bool(active)
+    pdf = scene.pdf_emitter_direction(ref, ds, active)
+    for k, shape, em_index in _lg_emitters(scene):
+        mine = active & (ds.emitter == mi.EmitterPtr(shape.emitter()))
+        _, cos_max, _ = _cone(shape, ref.p)
+        pdf = dr.select(mine, _cone_pdf(cos_max) * scene.pdf_emitter(em_index, mine), pdf)
+    return pdf
 
 
 # ---------------------------------------------------------------------------

@@ -5,8 +5,9 @@ import drjit as dr
 import mitsuba as mi
 
 from . import common
-from .common import (compute_interaction, mis_weight, ray_intersect,
-                     ray_intersect_preliminary, ray_test, skip_area_emitters)
+from .common import (compute_interaction, mis_weight, pdf_emitter_direction, ray_intersect,
+                     ray_intersect_preliminary, ray_test, sample_emitter_direction,
+                     skip_area_emitters)
 
 
 class LGDirectIntegrator(mi.SamplingIntegrator):
@@ -89,10 +90,11 @@ class LGDirectIntegrator(mi.SamplingIntegrator):
         # ----------------------- Emitter sampling -----------------------
         active_em = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         for _ in range(self.emitter_samples):
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(active_em),
-                                                           False, active_em)
+            ds, em_weight, tested = sample_emitter_direction(scene, si,
+                                                             sampler.next_2d(active_em),
+                                                             active_em)
             active_e = active_em & (ds.pdf != 0)
-            active_e &= ~ray_test(scene, si.spawn_ray_to(ds.p), active_e)
+            active_e &= ~ray_test(scene, si.spawn_ray_to(ds.p), active_e & ~tested)
             wo = si.to_local(ds.d)
             bsdf_val, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, active_e)
             mis = dr.select(ds.delta, 1.0, mis_weight(ds.pdf * self.frac_em,
@@ -115,7 +117,7 @@ class LGDirectIntegrator(mi.SamplingIntegrator):
             Le = emitter.eval(si_b, active_b)
             ds = mi.DirectionSample3f(scene, si=si_b, ref=si)
             delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-            em_pdf = dr.select(delta, 0.0, scene.pdf_emitter_direction(si, ds, active_b))
+            em_pdf = dr.select(delta, 0.0, pdf_emitter_direction(scene, si, ds, active_b))
             mis = mis_weight(bs.pdf * self.frac_bsdf, em_pdf * self.frac_em) / self.bsdf_samples
             L = dr.select(active_b, L + bsdf_weight * Le * mis, L)
 

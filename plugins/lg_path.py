@@ -5,8 +5,9 @@ import drjit as dr
 import mitsuba as mi
 
 from . import common
-from .common import (compute_interaction, mis_weight, ray_intersect,
-                     ray_intersect_preliminary, ray_test, skip_area_emitters)
+from .common import (compute_interaction, mis_weight, pdf_emitter_direction, ray_intersect,
+                     ray_intersect_preliminary, ray_test, sample_emitter_direction,
+                     skip_area_emitters)
 
 
 class LGPathIntegrator(mi.SamplingIntegrator):
@@ -94,7 +95,7 @@ class LGPathIntegrator(mi.SamplingIntegrator):
             # ---------------------- Direct emission ----------------------
             ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
             em_pdf = dr.select(prev_bsdf_delta, 0.0,
-                               scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta))
+                               pdf_emitter_direction(scene, prev_si, ds, ~prev_bsdf_delta))
             Le = ds.emitter.eval(si, prev_bsdf_pdf > 0)
             L = dr.fma(β, Le * mis_weight(prev_bsdf_pdf, em_pdf), L)
 
@@ -102,9 +103,10 @@ class LGPathIntegrator(mi.SamplingIntegrator):
 
             # ---------------------- Emitter sampling ----------------------
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active_em)
+            ds, em_weight, tested = sample_emitter_direction(scene, si, sampler.next_2d(),
+                                                             active_em)
             active_em &= ds.pdf != 0
-            active_em &= ~ray_test(scene, si.spawn_ray_to(ds.p), active_em)
+            active_em &= ~ray_test(scene, si.spawn_ray_to(ds.p), active_em & ~tested)
             wo = si.to_local(ds.d)
 
             # ------ Evaluate BSDF * cos(theta) and sample a direction ------

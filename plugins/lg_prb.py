@@ -7,7 +7,8 @@ import mitsuba as mi
 from mitsuba.python.ad.integrators.common import RBIntegrator, solid_angle_to_area_jacobian
 
 from . import common
-from .common import (Hit, compute_interaction, mis_weight, ray_intersect_preliminary, ray_test,
+from .common import (Hit, compute_interaction, mis_weight, pdf_emitter_direction,
+                     ray_intersect_preliminary, ray_test, sample_emitter_direction,
                      skip_area_emitters)
 
 
@@ -244,7 +245,7 @@ class LGPRBIntegrator(RBIntegrator):
             # ---------------------- Direct emission ----------------------
             ds = mi.DirectionSample3f(scene, si=si, ref=si_prev)
             em_pdf = dr.select(bsdf_delta_prev, 0.0,
-                               scene.pdf_emitter_direction(si_prev, ds, ~bsdf_delta_prev))
+                               pdf_emitter_direction(scene, si_prev, ds, ~bsdf_delta_prev))
             mis = mis_weight(bsdf_pdf_prev, em_pdf)
             with dr.resume_grad(when=not primal):
                 Le = β * mis * ds.emitter.eval(si, bsdf_pdf_prev > 0)
@@ -253,10 +254,10 @@ class LGPRBIntegrator(RBIntegrator):
 
             # ---------------------- Emitter sampling ----------------------
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False,
-                                                           active_em)
+            ds, em_weight, tested = sample_emitter_direction(scene, si, sampler.next_2d(),
+                                                             active_em)
             active_em &= ds.pdf != 0
-            active_em &= ~ray_test(scene, si.spawn_ray_to(ds.p), active_em)
+            active_em &= ~ray_test(scene, si.spawn_ray_to(ds.p), active_em & ~tested)
             with dr.resume_grad(when=not primal):
                 if dr.hint(not primal, mode="scalar"):
                     ds, em_weight = self._attach_emitter_sample(scene, si, ds, em_weight,

@@ -110,7 +110,14 @@ class LGSurface(mi.Mesh):
        - The surface's BSDF (default: ``diffuse``). Mitsuba's BSDFs are
          one-sided: the front is the side the normal points to. Wrap the BSDF
          in ``twosided`` for surfaces seen from both sides (open, clipped or
-         periodic ones). Area emitters are not supported.
+         periodic ones).
+     * - (Nested plugin)
+       - |emitter|
+       - An ``area`` emitter: the surface emits light (on the side its
+         normal points to). The lg integrators sample it themselves
+         (:func:`.common.sample_emitter_direction`: Mitsuba's area emitter
+         samples its shape in C++, which cannot reach this Python shape).
+         Other emitter types are refused.
 
     The surface is rendered by the ``lg_path``, ``lg_direct``, ``lg_aov`` and
     ``lg_prb`` integrators; Mitsuba's own integrators (``path``, ``volpath``, ``prb``,
@@ -173,11 +180,12 @@ class LGSurface(mi.Mesh):
     def __init__(self, props: mi.Properties):
         for name in props.keys():
             if props.type(name) == mi.Properties.Type.Object and \
-                    isinstance(props.get(name), mi.Emitter):
+                    isinstance(props.get(name), mi.Emitter) and \
+                    props.get(name).class_name() != "AreaLight":
                 raise ValueError(
-                    f"lgsurface: an emitter child ('{name}') is not supported: the "
-                    "surface cannot emit light. Light the scene with a native shape "
-                    "(e.g. a 'rectangle' with an 'area' emitter) or an environment.")
+                    f"lgsurface: the emitter child '{name}' "
+                    f"({props.get(name).class_name()}) cannot sit on a shape; only an "
+                    "'area' emitter can")
         self._source = _read_surface(props)
         self._bbox_given = _read_bbox(props)
         self._hints = {"L": _positive(props, "L"), "G": _positive(props, "G"),
@@ -315,12 +323,22 @@ class LGSurface(mi.Mesh):
         return surface, self._source.describe(values, implicit)
 
     def _set_matrix(self, matrix):
-        """Object-to-world matrix (float64, 4x4): matrices, world box; the
-        Dr.Jit copies are made again on next use (:meth:`_matrices`)."""
+        """Object-to-world matrix (float64, 4x4): matrices, world box,
+        bounding sphere; the Dr.Jit copies are made again on next use
+        (:meth:`_matrices`)."""
         self.matrix = matrix
         self.inverse = _invert(matrix)
         self._world_box = _transform_box(self.matrix, self.surface.bbox)
+        self._sphere = _bounding_sphere(self.surface, self.matrix)
         self._jit = None
+
+    def bounding_sphere(self):
+        """(centre, radius) in world space of a sphere that holds the
+        surface: about the occupied cells of its pruning grid (where f can
+        vanish), so tight to a cell. An area emitter on the surface is
+        sampled in its cone (:func:`.common.sample_emitter_direction`)."""
+        c, r = self._sphere
+        return mi.Point3f(*(dr.opaque(mi.Float, float(v)) for v in c)), dr.opaque(mi.Float, r)
 
     def _set_placeholder(self, faces=False):
         lo, hi = self._world_box
@@ -878,6 +896,29 @@ def band_weight(S, width):
     def tri(e):
         return dr.select(S > -e, 2.0 / e * (1.0 + S / e), 0.0)
     return 2.0 * tri(0.25 * width) - tri(width)
+
+
+def _bounding_sphere(surface, matrix):
+    """The world-space centre and radius of a sphere holding the occupied
+    fine cells of ``surface``'s grid (its box where there are none)."""
+    grid = surface.grid
+    cells = getattr(grid, "cells", None)
+    if cells is None or len(cells) == 0:
+        lo, hi = (np.asarray(v, np.float64) for v in surface.bbox)
+        corners = np.array([[(hi if (k >> a) & 1 else lo)[a] for a in range(3)]
+                            for k in range(8)])
+    else:
+        size = np.asarray(grid.cell_size, np.float64)
+        base = np.asarray(grid.lo, np.float64) + np.asarray(cells, np.float64) * size
+        offs = np.array([[(k >> a) & 1 for a in range(3)] for k in range(8)], np.float64)
+        corners = (base[:, None, :] + offs[None] * size).reshape(-1, 3)
+        # the pruning grid may be a cube about the box: keep to the box
+        lo, hi = (np.asarray(v, np.float64) for v in surface.bbox)
+        corners = np.clip(corners, lo, hi)
+    world = corners @ matrix[:3, :3].T + matrix[:3, 3]
+    c = 0.5 * (world.min(0) + world.max(0))
+    r = float(np.sqrt(((world - c) ** 2).sum(1).max()))
+    return c, r * (1 + 1e-6) + 1e-12
 
 
 def _point_env(q):

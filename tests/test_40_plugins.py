@@ -451,8 +451,8 @@ def test08_flip_normals():
     ({"surface": "sphere", "depth": 2.5}, r"'depth' must be a non-negative integer"),
     ({"surface": "sphere", "depth": 11}, r"lgsurface: depth must be between 2 and 10"),
     ({"surface": "sphere", "L": -1.0}, r"'L' must be a positive number"),
-    ({"surface": "sphere", "light": {"type": "area"}},
-     r"an emitter child \('light'\) is not supported"),
+    ({"surface": "sphere", "light": {"type": "point"}},
+     r"the emitter child 'light' \(PointLight\) cannot sit on a shape; only an 'area'"),
 ])
 def test09_error_messages(props, message):
     # Oracle: the message names the offending parameter (and the position).
