@@ -118,6 +118,16 @@ def test02_quick_run_render_and_latency(quick):
     # the same picture: the mesh wound as lgsurface's normals (a one-sided
     # conductor seen from behind would be black)
     assert c["path"]["image_mean"] == pytest.approx(c["lg_path"]["image_mean"], rel=0.1)
+    # the gradient pass (lg_prb, prb on the mesh) and the emitters' noise:
+    # records of each case, the ratios from their own timings
+    g = res["gradients"]
+    for key in ("lg_prb", "prb", "lg_prb_shape"):
+        assert g[key]["primal_s"] > 0 and g[key]["gradient_s"] > 0 and g[key]["grad_norm"] > 0
+    assert g["met_anchor"] == (g["lg_prb"]["ratio"] <= g["prb"]["ratio"])
+    e = res["emitters"]["methods"]
+    assert set(e) == {"lg_path, lgsurface", "path, native sphere", "path, mesh"}
+    assert all(m["mse"] > 0 and m["seconds"] > 0 for m in e.values())
+    assert e["path, native sphere"]["mse_ratio"] == 1.0
     k = res["compile"]
     for key in S.PROBES:
         assert "error" not in k[key], k[key]
