@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .expr import evaluate, gradient
+
 
 def clip_to_box(o, d, lo, hi, t_min=0.0, t_max=np.inf):
     """Per-ray [t0, t1] of o + t d inside the box (t0 > t1 where missed)."""
@@ -117,3 +119,50 @@ def rod_intervals(o, d, a, b, r):
     tn, tf = np.maximum(c0, a0), np.minimum(c1, a1)
     ok = (q >= 0) & (tn <= tf)
     return np.where(ok, tn, np.nan), np.where(ok, tf, np.nan)
+
+
+#: A complex root counts as real when |Im t| is below this (in diagonals).
+REAL_ROOT = 1e-6
+
+
+def numpy_f(expr):
+    """f as a float64 numpy callable F(X, Y, Z) (the reference's view of f)."""
+    return lambda X, Y, Z: evaluate(expr, {"x": X, "y": Y, "z": Z})
+
+
+def nearest_root(spec, o, d, t_min=0.0, degree=None, steps=4096, t_max=None):
+    """Float64 nearest root of f along each float32 ray o + t d in the box,
+    beyond ``t_min`` (and before ``t_max`` where given): exact polynomial
+    roots when ``degree`` is given, else the first sign change of a
+    ``steps``-point scan refined by bisection. Returns t (inf where none)."""
+    o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
+    lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
+    t0, t1 = clip_to_box(o, d, lo, hi, t_min=t_min)
+    if t_max is not None:
+        t1 = np.minimum(t1, t_max)
+    F = numpy_f(spec.expr)
+    out = np.full(len(o), np.inf)
+    ok = np.flatnonzero(t1 > t0)
+    if degree is not None:
+        diag = float(np.linalg.norm(hi - lo))
+        for k in range(0, len(ok), 8192):
+            i = ok[k:k + 8192]
+            r = polynomial_roots(F, degree, o[i], d[i], t0[i], t1[i])
+            real = np.abs(r.imag) <= REAL_ROOT * diag
+            t = np.where(real & (r.real >= t0[i, None]) & (r.real <= t1[i, None]), r.real, np.inf)
+            out[i] = t.min(1)
+        return out
+    chunk = max(1, 2**19 // steps)          # ~0.5 M samples at a time
+    for k in range(0, len(ok), chunk):
+        i = ok[k:k + chunk]
+        out[i] = first_sign_change(F, o[i], d[i], t0[i], t1[i], steps=steps)
+    return out
+
+
+def reference_normal(spec, p):
+    """Unit float64 gradient of f at points p (n, 3); NaN where grad f = 0."""
+    g = evaluate(list(gradient(spec.expr)), dict(zip("xyz", np.asarray(p, np.float64).T)))
+    g = np.stack([np.broadcast_to(v, len(p)) for v in g], 1).astype(np.float64)
+    n = np.linalg.norm(g, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n > 0, g / n, np.nan)

@@ -23,13 +23,14 @@ samples after a warm-up, rays and acceleration structure already built, see
 :func:`lgshape.bench.common.timed`), function evaluations per ray (where the
 method evaluates f), the memory of the acceleration structure, and, on the
 same traces (every pixel, or a regular subset of them), accuracy against a
-float64 reference (:func:`lgshape.bench.stability.nearest_root`: polynomial roots
+float64 reference (:func:`lgshape.reference.nearest_root`: polynomial roots
 for algebraic surfaces, a dense scan otherwise): the fraction of pixels with
 a wrong hit or miss, the depth error |t - t_ref| in box diagonals over the
 pixels both hit (mean and max), and the mean angle between the method's
 normal line and the float64 gradient at the reference hit (degrees; a NaN
 normal counts 90). Then the stability suite (:mod:`lgshape.bench.stability`) on
-the same methods, one setting each (:func:`bench_stability`).
+the same methods, one setting each (:func:`stability_runners`; run by
+:func:`lgshape.bench.stability.run`).
 """
 from __future__ import annotations
 
@@ -38,13 +39,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import stability
 from ..camera import primary_rays
 from ..surfaces import LIBRARY
 from ..trace import DEFAULT_DEPTH
 from .baselines import Samples, march_runner, mesh_runner, sampling_runners, sdfgrid_runner, \
     sphere_runner
-from .common import Rays, empty_runner, fmt, lgshape_runner, timed
+from ..reference import nearest_root, reference_normal
+from .common import DEGREE, Rays, empty_runner, fmt, lgshape_runner, timed
 
 
 @dataclass(frozen=True)
@@ -158,13 +159,13 @@ def bench_surface(name, cfg: Config, log):
     rays = Rays(o, d)
     diag = float(np.linalg.norm(np.subtract(spec.bbox[1], spec.bbox[0])))
     t0 = time.perf_counter()
-    degree = stability.DEGREE.get(name)
+    degree = DEGREE.get(name)
     sub = accuracy_subset(cfg.res, cfg.stride)
-    ref_t = stability.nearest_root(spec, o[sub], d[sub], degree=degree, steps=cfg.scan_steps)
+    ref_t = nearest_root(spec, o[sub], d[sub], degree=degree, steps=cfg.scan_steps)
     ref_n = np.full((len(sub), 3), np.nan)
     hit = np.isfinite(ref_t)
     o_s, d_s = o[sub][hit].astype(np.float64), d[sub][hit].astype(np.float64)
-    ref_n[hit] = stability.reference_normal(spec, o_s + ref_t[hit, None] * d_s)
+    ref_n[hit] = reference_normal(spec, o_s + ref_t[hit, None] * d_s)
     log(f"{name}: reference ({'polynomial roots' if degree else f'{cfg.scan_steps}-step scan'}) "
         f"on {len(sub)} rays in {time.perf_counter() - t0:.1f} s, {hit.mean():.1%} of them hit")
     records = []
@@ -188,33 +189,3 @@ def bench_surface(name, cfg: Config, log):
         log(f"  {rec['method']:21} {rec['setting']:26} {rec['mrays_per_s']:7.2f} Mrays/s  "
             f"wrong {rec['wrong_hit_fraction']:.4f}  depth {fmt(rec['depth_error_mean'])}")
     return records
-
-
-def bench_stability(cfg: Config, log, groups=stability.GROUPS):
-    """Stability records, and a note per case (its group, description and
-    oracle). Cases with ``judge_t64`` judge lgshape on its float64 t64 (the
-    others have only their float32 t)."""
-    out, notes = [], []
-    for case in stability.cases(scale=cfg.stability_scale, groups=groups):
-        notes.append({"case": case.name, "group": case.group, "description": case.description,
-                      "oracle": case.oracle, "rays": len(case.o),
-                      "tangent": int(case.tangent.sum()), "t_min": case.t_min,
-                      "judge_t64": case.judge_t64})
-        rays = Rays(case.o, case.d, case.t_min)
-        for make in stability_runners(case.surface, rays, cfg, case.lipschitz):
-            runner = make()
-            res, _ = timed(runner, 0)
-            on64 = case.judge_t64 and "t64" in res
-            t = np.where(res["hit"], res["t64"] if on64 else res["t"], np.inf)
-            verdict = stability.judge(case, t, res["hit"], runner.normals(t))
-            capped = None if res["capped"] is None else int(res["capped"].sum())
-            out.append({"case": case.name, "group": case.group, "method": runner.method,
-                        "setting": runner.setting, "missed": verdict["missed"],
-                        "false_hits": verdict["false_hits"], "capped": capped,
-                        "nans": verdict["nans"], "tangent_excluded": verdict["tangent"],
-                        "rays": verdict["rays"], "judged_on": "t64" if on64 else "t",
-                        **{k: v for k, v in runner.extra.items() if k in ("lipschitz_L", "note")}})
-        log(f"stability {case.name}: " + ", ".join(
-            f"{r['method']}[{r['setting']}] {r['missed']}/{r['false_hits']}/{r['capped']}"
-            for r in out if r["case"] == case.name))
-    return out, notes

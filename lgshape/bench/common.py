@@ -46,6 +46,20 @@ METHOD_STYLE = {"lgshape": ("tab:red", "o"), "lgshape_global": ("tab:orange", "s
 
 # ---- Rays and methods -------------------------------------------------------------
 
+#: Degree of the algebraic library surfaces (their f is a polynomial): the
+#: reference for them is exact polynomial roots.
+DEGREE = {"sphere": 2, "torus": 4, "tangle": 4, "barth_sextic": 6, "kummer": 4,
+          "chmutov6": 6, "clebsch": 3}
+
+#: Depth tolerance of the missed / false-hit verdicts, in box diagonals.
+TOLERANCE = 1e-2
+
+#: The stability suite's case groups, in the report's order.
+FEATURES = "Thin features, tangents and singular points"
+DOMAIN = "Domain and scale"
+GROUPS = (FEATURES, DOMAIN)
+
+
 @dataclass
 class Runner:
     """One method at one setting, ready to trace prepared rays."""

@@ -19,7 +19,8 @@ import time
 from . import stability
 from ..surfaces import LIBRARY
 from . import scale, speed, temporal
-from .accuracy import FULL, QUICK, accuracy_subset, bench_stability, bench_surface
+from .accuracy import (DEFAULT_LG, FULL, QUICK, accuracy_subset, bench_surface,
+                       stability_runners)
 from .common import VARIANT, finite, git_commit, machine, stderr_log
 from .report import charts, report
 
@@ -69,7 +70,10 @@ def main(argv=None) -> int:
     records = []
     for name in surfaces:
         records += bench_surface(name, cfg, log)
-    stab, notes = bench_stability(cfg, log) if args.stability else ([], [])
+    stab, notes = stability.run(
+        stability.cases(scale=cfg.stability_scale),
+        lambda case, rays: stability_runners(case.surface, rays, cfg, case.lipschitz),
+        log) if args.stability else ([], [])
     results = {"meta": meta, "records": records, "stability": stab, "cases": notes}
     os.makedirs(os.path.join(args.out, "charts"), exist_ok=True)
     if args.speed:
@@ -87,7 +91,10 @@ def main(argv=None) -> int:
     with open(os.path.join(args.out, "results.json"), "w") as fh:
         json.dump(finite(results), fh, indent=1, allow_nan=False)
     with open(os.path.join(args.out, "BENCHMARKS.md"), "w") as fh:
-        fh.write(report(results, command, written))
+        sections = [speed.report(results["speed"]) if results.get("speed") else [],
+                    scale.report(results["scale"], meta["res"]) if results.get("scale") else [],
+                    temporal.report(results["temporal"]) if results.get("temporal") else []]
+        fh.write(report(results, command, written, sections, DEFAULT_LG))
     log(f"wrote {os.path.join(args.out, 'results.json')}, BENCHMARKS.md and {len(written)} charts")
     return 0
 

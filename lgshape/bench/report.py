@@ -12,10 +12,7 @@ from __future__ import annotations
 import math
 import os
 
-from . import stability
-from . import scale, speed, temporal
-from .accuracy import DEFAULT_LG
-from .common import METHOD_STYLE, VARIANT, fmt, pct
+from .common import DOMAIN, FEATURES, METHOD_STYLE, TOLERANCE, VARIANT, fmt, pct
 
 
 # ---- Charts -----------------------------------------------------------------
@@ -97,7 +94,7 @@ LG_DEPTH_TOLERANCE = 1e-5
 PLAIN_SPHERE = ("sphere_trace", "eps 1e-05 diag")
 
 
-def headlines(records):
+def headlines(records, default_lg):
     """Per surface: lgshape's default; the plain sphere tracer; the fastest
     sphere tracer (either variant, any threshold) of equal accuracy; the most
     accurate sdfgrid and mesh at least as fast as lgshape (the fastest one
@@ -105,7 +102,7 @@ def headlines(records):
     rows = []
     for name in dict.fromkeys(r["surface"] for r in records):
         recs = [r for r in records if r["surface"] == name]
-        lg = next((r for r in recs if (r["method"], r["setting"]) == ("lgshape", DEFAULT_LG)),
+        lg = next((r for r in recs if (r["method"], r["setting"]) == ("lgshape", default_lg)),
                   None)
         if lg is None:
             continue
@@ -169,9 +166,12 @@ def _kib(b):
     return "–" if b is None else ("0" if b == 0 else f"{b / 1024:,.0f}")
 
 
-def report(results, command, written) -> str:
+def report(results, command, written, sections=(), default_lg="interval, depth 7") -> str:
     """BENCHMARKS.md of a run's results (``command``: the command line that
-    made them; ``written``: the charts' paths)."""
+    made them; ``written``: the charts' paths; ``sections``: the speed,
+    scale and temporal sections' own pages, lists of lines, from the driver,
+    which alone imports the sections; ``default_lg``: lgshape's default
+    setting, as the accuracy section names it)."""
     meta, records, stab = results["meta"], results["records"], results["stability"]
     L = []
     L.append("# Benchmarks: speed against accuracy\n")
@@ -215,10 +215,10 @@ def report(results, command, written) -> str:
              "area-weighted vertex normals, traced by Embree in Mitsuba).\n")
 
     L.append("## Headline\n")
-    rows = headlines(records)
+    rows = headlines(records, default_lg)
     L += summary(rows)
     L.append("")
-    L.append(f"lgshape at its default (`{DEFAULT_LG}`) against: plain sphere tracing "
+    L.append(f"lgshape at its default (`{default_lg}`) against: plain sphere tracing "
              f"(`{PLAIN_SPHERE[1]}`); the fastest sphere tracer of equal accuracy (either variant, "
              f"any threshold, at most {EQUAL_WRONG:.1%} more wrong pixels and a mean depth error "
              f"of at most {EQUAL_DEPTH:g} diagonals); the most accurate sdfgrid and mesh at least "
@@ -266,17 +266,17 @@ def report(results, command, written) -> str:
     L.append("Missed hits / false hits / rays at the iteration cap / NaNs per case and method "
              "(`–`: the method has no iteration cap). A ray is missed when the reference "
              f"has a root and the method reports none or one more than "
-             f"{stability.TOLERANCE:g} diagonals beyond it (capped rays with a root count as "
+             f"{TOLERANCE:g} diagonals beyond it (capped rays with a root count as "
              "missed too); a false hit is a hit with no root there. Tangent rays (either answer "
              "is right) are excluded from both counts and listed. `(refused)`: the method "
              "cannot be built for that f (the seed's global L or G is infinite) and reports "
              "no hit; `(no geometry)`: the grid samples have no sign change.\n")
     keys = list(dict.fromkeys((r["method"], r["setting"]) for r in stab))
     notes = results["cases"]
-    for group in dict.fromkeys(c.get("group", stability.FEATURES) for c in notes):
-        in_group = [c for c in notes if c.get("group", stability.FEATURES) == group]
+    for group in dict.fromkeys(c.get("group", FEATURES) for c in notes):
+        in_group = [c for c in notes if c.get("group", FEATURES) == group]
         L.append(f"### {group}\n")
-        if group == stability.DOMAIN:
+        if group == DOMAIN:
             L.append("f scaled by 1e-30 to 1e30, fast-growing f, f undefined in part of its "
                      "box (a pole, domain edges, an undefined gap), signed-distance primitives "
                      "built with min / max / abs / sqrt, geometry far from the origin, and "
@@ -310,12 +310,8 @@ def report(results, command, written) -> str:
                      f"{c['description']}. Oracle: {c['oracle']}.")
         L.append("")
 
-    if results.get("speed"):
-        L += speed.report(results["speed"])
-    if results.get("scale"):
-        L += scale.report(results["scale"], meta["res"])
-    if results.get("temporal"):
-        L += temporal.report(results["temporal"])
+    for lines in sections:
+        L += lines
     L.append("## All records\n")
     L.append("Depth errors in box diagonals; `–` where a figure has no meaning (no evaluations "
              "of f, no pixel hit by both).\n")

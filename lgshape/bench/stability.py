@@ -53,24 +53,11 @@ import numpy as np
 
 from ..expr import evaluate, gradient, hessian, parse, var
 from ..expr.node import exp, log, maximum, minimum, sqrt
-from ..reference import clip_to_box, first_sign_change, polynomial_roots, rod_intervals
+from ..reference import (clip_to_box, nearest_root, numpy_f, polynomial_roots,  # noqa: F401
+                         rod_intervals)
+from .common import DEGREE, DOMAIN, FEATURES, GROUPS, TOLERANCE, Rays, timed  # noqa: F401
 from ..surfaces import SPIKE_AXES, Implicit, kummer, sphere, spikes, torus
 
-#: Degree of the algebraic library surfaces (their f is a polynomial): the
-#: reference for them is exact polynomial roots.
-DEGREE = {"sphere": 2, "torus": 4, "tangle": 4, "barth_sextic": 6, "kummer": 4,
-          "chmutov6": 6, "clebsch": 3}
-
-#: Depth tolerance of the missed / false-hit verdicts, in box diagonals.
-TOLERANCE = 1e-2
-
-#: A complex root counts as real when |Im t| is below this (in diagonals).
-REAL_ROOT = 1e-6
-
-#: The case groups, in the report's order.
-FEATURES = "Thin features, tangents and singular points"
-DOMAIN = "Domain and scale"
-GROUPS = (FEATURES, DOMAIN)
 
 
 @dataclass
@@ -96,49 +83,6 @@ class Case:
         return float(np.linalg.norm(hi - lo))
 
 
-def numpy_f(expr):
-    """f as a float64 numpy callable F(X, Y, Z) (the reference's view of f)."""
-    return lambda X, Y, Z: evaluate(expr, {"x": X, "y": Y, "z": Z})
-
-
-def nearest_root(spec: Implicit, o, d, t_min=0.0, degree=None, steps=4096, t_max=None):
-    """Float64 nearest root of f along each float32 ray o + t d in the box,
-    beyond ``t_min`` (and before ``t_max`` where given): exact polynomial
-    roots when ``degree`` is given, else the first sign change of a
-    ``steps``-point scan refined by bisection. Returns t (inf where none)."""
-    o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
-    lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
-    t0, t1 = clip_to_box(o, d, lo, hi, t_min=t_min)
-    if t_max is not None:
-        t1 = np.minimum(t1, t_max)
-    F = numpy_f(spec.expr)
-    out = np.full(len(o), np.inf)
-    ok = np.flatnonzero(t1 > t0)
-    if degree is not None:
-        diag = float(np.linalg.norm(hi - lo))
-        for k in range(0, len(ok), 8192):
-            i = ok[k:k + 8192]
-            r = polynomial_roots(F, degree, o[i], d[i], t0[i], t1[i])
-            real = np.abs(r.imag) <= REAL_ROOT * diag
-            t = np.where(real & (r.real >= t0[i, None]) & (r.real <= t1[i, None]), r.real, np.inf)
-            out[i] = t.min(1)
-        return out
-    chunk = max(1, 2**19 // steps)          # ~0.5 M samples at a time
-    for k in range(0, len(ok), chunk):
-        i = ok[k:k + chunk]
-        out[i] = first_sign_change(F, o[i], d[i], t0[i], t1[i], steps=steps)
-    return out
-
-
-def reference_normal(spec: Implicit, p):
-    """Unit float64 gradient of f at points p (n, 3); NaN where grad f = 0."""
-    g = evaluate(list(gradient(spec.expr)), dict(zip("xyz", np.asarray(p, np.float64).T)))
-    g = np.stack([np.broadcast_to(v, len(p)) for v in g], 1).astype(np.float64)
-    n = np.linalg.norm(g, axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n > 0, g / n, np.nan)
-
-
 def judge(case: Case, t, hit, normals=None) -> dict:
     """Missed hits, false hits, NaNs of one method's answer on a case (see
     the module text); ``normals`` (n, 3) at the hits, if the method has them."""
@@ -155,6 +99,38 @@ def judge(case: Case, t, hit, normals=None) -> dict:
         nans |= hit & np.isnan(np.asarray(normals, np.float64)).any(1)
     return {"missed": int(missed.sum()), "false_hits": int(false.sum()), "nans": int(nans.sum()),
             "tangent": int(case.tangent.sum()), "rays": len(t)}
+
+
+def run(cases, runners, log):
+    """The stability records, and a note per case (its group, description
+    and oracle): ``runners(case, rays)`` gives the methods' runner makers for
+    a case (the accuracy section's, one setting each). Cases with
+    ``judge_t64`` judge lgshape on its float64 t64 (the others have only
+    their float32 t)."""
+    out, notes = [], []
+    for case in cases:
+        notes.append({"case": case.name, "group": case.group, "description": case.description,
+                      "oracle": case.oracle, "rays": len(case.o),
+                      "tangent": int(case.tangent.sum()), "t_min": case.t_min,
+                      "judge_t64": case.judge_t64})
+        rays = Rays(case.o, case.d, case.t_min)
+        for make in runners(case, rays):
+            runner = make()
+            res, _ = timed(runner, 0)
+            on64 = case.judge_t64 and "t64" in res
+            t = np.where(res["hit"], res["t64"] if on64 else res["t"], np.inf)
+            verdict = judge(case, t, res["hit"], runner.normals(t))
+            capped = None if res["capped"] is None else int(res["capped"].sum())
+            out.append({"case": case.name, "group": case.group, "method": runner.method,
+                        "setting": runner.setting, "missed": verdict["missed"],
+                        "false_hits": verdict["false_hits"], "capped": capped,
+                        "nans": verdict["nans"], "tangent_excluded": verdict["tangent"],
+                        "rays": verdict["rays"], "judged_on": "t64" if on64 else "t",
+                        **{k: v for k, v in runner.extra.items() if k in ("lipschitz_L", "note")}})
+        log(f"stability {case.name}: " + ", ".join(
+            f"{r['method']}[{r['setting']}] {r['missed']}/{r['false_hits']}/{r['capped']}"
+            for r in out if r["case"] == case.name))
+    return out, notes
 
 
 # ---- Building the cases ----------------------------------------------------

@@ -22,13 +22,13 @@ below e^-40 and f > 0, so the first root lies in those windows (or in a thin
 shell just outside the core, inside which f <= 0); each window is sampled
 every ``scan_step`` (2e-4, a hundredth of a spike's width at its base, in
 units of t) and the first sign change bisected to float64 precision. It is
-checked in the tests against :func:`lgshape.bench.stability.nearest_root`'s plain
+checked in the tests against :func:`lgshape.reference.nearest_root`'s plain
 dense scan. It is the same for every method.
 
 **Metrics**, per method (a record per method and setting):
 
 - *wrong pixel*: the method's hit / miss differs from the oracle's, or both
-  hit and |t - t_ref| > ``stability.TOLERANCE`` (1e-2) box diagonals (a
+  hit and |t - t_ref| > ``TOLERANCE`` (1e-2) box diagonals (a
   spike missed in front of the core, which is then hit behind it);
 - *thin-feature pixels* of a frame: the pixels whose oracle hit point lies
   on a spike, i.e. more than ``FEATURE_RADIUS`` (1.1) core radii from the
@@ -67,14 +67,13 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from . import stability
 from ..camera import look_rays
 from ..expr import evaluate, gradient
-from ..reference import clip_to_box
+from ..reference import clip_to_box, numpy_f
 from ..surfaces import SPIKE_AXES, Implicit, spikes
 from .baselines import sampling_runners, sphere_runner
-from .common import METHOD_STYLE, VARIANT, Rays, finite, global_L, lgshape_runner, pct, \
-    stderr_log, timed
+from .common import (METHOD_STYLE, TOLERANCE, VARIANT, Rays, finite, global_L, lgshape_runner,
+                     pct, stderr_log, timed)
 
 #: Spike parameters of the animation (the library defaults).
 CORE, HEIGHT, WIDTH = 0.5, 1.0, 0.01
@@ -165,10 +164,10 @@ def spikes_reference(spec: Implicit, o, d, core=CORE, width=WIDTH, axes=SPIKE_AX
     ``spikes`` surface with these ``core``, ``width`` and ``axes``) along
     each ray o + t d in its box: a windowed scan (see the module text) with
     bisection of the first sign change. f is evaluated from ``spec.expr``
-    in float64 (:func:`lgshape.bench.stability.numpy_f`)."""
+    in float64 (:func:`lgshape.reference.numpy_f`)."""
     o, d = np.asarray(o, np.float64), np.asarray(d, np.float64)
     lo, hi = (np.asarray(v, np.float64) for v in spec.bbox)
-    F = stability.numpy_f(spec.expr)
+    F = numpy_f(spec.expr)
     out = np.full(len(o), np.inf)
     for k in range(0, len(o), chunk):
         out[k:k + chunk] = _reference_chunk(F, o[k:k + chunk], d[k:k + chunk], lo, hi, core,
@@ -302,7 +301,7 @@ def judge_frames(t, hit, ref_t, o, d, diag, frames):
     ref_hit = np.isfinite(ref_t)
     P = len(t) // frames
     with np.errstate(invalid="ignore"):
-        far = np.abs(np.where(hit & ref_hit, t - ref_t, 0.0)) > stability.TOLERANCE * diag
+        far = np.abs(np.where(hit & ref_hit, t - ref_t, 0.0)) > TOLERANCE * diag
     wrong = (hit != ref_hit) | (hit & ref_hit & far)
     s_ref = states(o, d, ref_t, ref_hit)
     s_own = states(o, d, t, hit)
@@ -386,7 +385,7 @@ def run(log=None, quick=False, strip=None, cfg: TemporalConfig | None = None) ->
             f"wrong px {rec['wrong_pixel_mean']:.3%}, flicker {rec['flicker']:.1f} px/pair")
     meta = {"config": asdict(cfg), "surface": repr(spec), "core": CORE, "height": HEIGHT,
             "width": WIDTH, "diagonal": diag, "azimuths": azimuths, "pixels": P,
-            "feature_radius": FEATURE_RADIUS, "tolerance": stability.TOLERANCE,
+            "feature_radius": FEATURE_RADIUS, "tolerance": TOLERANCE,
             "pixel_size": 2 * cfg.distance * math.tan(math.radians(cfg.fov) / 2) / cfg.res,
             "spike_thickness": {f"{r:g}": spike_thickness(r) for r in (0.6, 0.8, 1.0, 1.1)},
             "oracle": ("float64 windowed scan of f (lgshape.bench.temporal.spikes_reference): "
