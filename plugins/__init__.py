@@ -16,6 +16,7 @@ PLUGINS = {
     "lg_direct": ("integrator", "LGDirectIntegrator"),
     "lg_aov": ("integrator", "LGAOVIntegrator"),
     "lg_prb": ("integrator", "LGPRBIntegrator"),
+    "lg_volpath": ("integrator", "LGVolpathIntegrator"),
 }
 
 _registered: set[str] = set()

@@ -6,7 +6,8 @@ integrator that renders it do not fit.
   3.9.1 does not trace Python shapes, so they would be missing from the
   image. The warning names the integrator as the scene names it and the lg_*
   integrator to use instead.
-- The lg_* integrators ignore participating media: a medium on a shape
+- lg_path, lg_direct, lg_aov and lg_prb ignore participating media (lg_volpath
+  renders them): a medium on a shape
   (native or lgsurface) or on the sensor would be left out. The warning
   names the shapes (and the sensor) that carry one, and what renders media.
 - lgsurface parameters are differentiated by ``lg_prb`` only: a gradient
@@ -59,8 +60,8 @@ _PY_PACKAGES = ("mitsuba.python.ad.integrators.", "mitsuba.ad.integrators.")
 
 #: plugin name -> the lg integrator that renders the same estimate with lgsurfaces.
 INSTEAD = {
-    "path": "lg_path", "volpath": "lg_path", "volpathmis": "lg_path", "prb": "lg_prb",
-    "prb_basic": "lg_prb", "prbvolpath": "lg_prb", "prb_projective": "lg_prb",
+    "path": "lg_path", "volpath": "lg_volpath", "volpathmis": "lg_volpath", "prb": "lg_prb",
+    "prb_basic": "lg_prb", "prbvolpath": "lg_volpath", "prb_projective": "lg_prb",
     "ptracer": "lg_path",
     "direct": "lg_direct", "direct_projective": "lg_direct",
     "aov": "lg_aov", "depth": "lg_aov",
@@ -170,8 +171,7 @@ def media_message(scene, integrator, sensor=None, lgs=None):
         return None
     lgs = _lg_shapes(scene) if lgs is None else lgs
     if lgs:
-        fix = ("no lgshape integrator renders media yet (lg_volpath does not exist), and "
-               "Mitsuba's 'volpath', which does, cannot see the lgsurfaces")
+        fix = "render it with 'lg_volpath', which renders media and sees the lgsurfaces"
     else:
         fix = "this scene has no lgsurface: render it with Mitsuba's 'volpath'"
     return (f"{name} ignores participating media, but {_names(carriers, 3)}: it renders "

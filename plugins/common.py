@@ -203,6 +203,30 @@ def _cone_pdf(cos_max):
     return dr.rcp(2.0 * dr.pi * (1.0 - cos_max))
 
 
+def _first_non_null(scene, ray, active):
+    """(ray, hit): the first hit along ``ray`` on a surface whose BSDF is not
+    ``null`` (null surfaces, such as media boundaries, let the direction
+    pass as BSDF sampling does), with the ray last spawned."""
+    hit = ray_intersect_preliminary(scene, ray, active)
+
+    def null_hit(ray, hit, go):
+        si = compute_interaction(scene, ray, hit, active=go)
+        return go & hit.is_valid() & \
+            mi.has_flag(si.bsdf(ray).flags(), mi.BSDFFlags.Null) & (hit.emitter(scene) == None)  # noqa: E711
+
+    go = null_hit(ray, hit, mi.Bool(active))
+
+    def body(ray, hit, go):
+        si = compute_interaction(scene, ray, hit, mi.RayFlags.Minimal, go)
+        ray = dr.select(go, si.spawn_ray(ray.d), ray)
+        hit = dr.select(go, ray_intersect_preliminary(scene, ray, go), hit)
+        return ray, hit, null_hit(ray, hit, go)
+
+    ray, hit, _ = dr.while_loop((mi.Ray3f(ray), hit, go), lambda ray, hit, go: go, body,
+                                label="lg: through null surfaces")
+    return ray, hit
+
+
 def sample_emitter_direction(scene, si, sample, active=True):
     """Emitter sampling that includes the area emitters of lgsurfaces:
     (ds, weight, tested). As ``scene.sample_emitter_direction(si, sample,
@@ -222,8 +246,7 @@ def sample_emitter_direction(scene, si, sample, active=True):
         axis, cos_max, _ = _cone(shape, si.p)
         local = mi.warp.square_to_uniform_cone(mi.Point2f(reused, sample.y), cos_max)
         d = mi.Frame3f(axis).to_world(local)
-        ray = si.spawn_ray(d)
-        hit = ray_intersect_preliminary(scene, ray, mine)
+        ray, hit = _first_non_null(scene, si.spawn_ray(d), mine)
         on = mine & (hit.lg == k + 1)
         si_e = compute_interaction(scene, ray, hit, active=on)
         em = shape.emitter()
@@ -231,7 +254,7 @@ def sample_emitter_direction(scene, si, sample, active=True):
         ds_k.p, ds_k.n, ds_k.uv = si_e.p, si_e.n, si_e.uv
         ds_k.time = si.time
         ds_k.d = d
-        ds_k.dist = si_e.t
+        ds_k.dist = dr.norm(si_e.p - si.p)
         ds_k.pdf = _cone_pdf(cos_max) * scene.pdf_emitter(em_index, mine)
         ds_k.delta = mi.Bool(False)
         ds_k.emitter = mi.EmitterPtr(em)

@@ -119,14 +119,14 @@ class LGSurface(mi.Mesh):
          samples its shape in C++, which cannot reach this Python shape).
          Other emitter types are refused.
 
-    The surface is rendered by the ``lg_path``, ``lg_direct``, ``lg_aov`` and
-    ``lg_prb`` integrators; Mitsuba's own integrators (``path``, ``volpath``, ``prb``,
+    The surface is rendered by the ``lg_path``, ``lg_direct``, ``lg_aov``,
+    ``lg_volpath`` and ``lg_prb`` integrators; Mitsuba's own integrators (``path``, ``volpath``, ``prb``,
     ``direct``, ``aov``, ...) do not see it, and ``mi.render`` (wrapped by
     :func:`lgshape.register_plugins`) and ``lgshape render`` warn when one
-    renders a scene with lgsurfaces (:mod:`lgshape.plugins.checks`). The lg
-    integrators ignore participating media (and warn where the scene has
-    some); Mitsuba's ``volpath`` does not see lgsurfaces: no integrator
-    renders both yet.
+    renders a scene with lgsurfaces (:mod:`lgshape.plugins.checks`).
+    ``interior`` / ``exterior`` media are read as by any Mitsuba shape and
+    rendered by ``lg_volpath`` (the other lg integrators ignore media, and
+    warn where the scene has some).
 
     **Scene parameters.** ``mi.traverse`` shows ``<id>.to_world``
     (``AffineTransform4f``) and every numeric parameter of f as a float32

@@ -63,8 +63,8 @@ def lg_warnings(fn):
 # ---------------------------------------------------------------------------
 
 @pytest.mark.parametrize("plugin, instead", [
-    ("path", "lg_path"), ("volpath", "lg_path"), ("volpathmis", "lg_path"), ("prb", "lg_prb"),
-    ("prbvolpath", "lg_prb"), ("direct", "lg_direct"), ("aov", "lg_aov"),
+    ("path", "lg_path"), ("volpath", "lg_volpath"), ("volpathmis", "lg_volpath"),
+    ("prb", "lg_prb"), ("prbvolpath", "lg_volpath"), ("direct", "lg_direct"), ("aov", "lg_aov"),
     ("depth", "lg_aov")])
 def test01_mitsuba_integrator_warns_through_mi_render(plugin, instead):
     # Oracle: the plugin as the scene names it, the README's lg counterpart,
@@ -147,7 +147,7 @@ def test06_medium_on_a_native_shape(plugin):
 
 def test07_medium_on_an_lgsurface_and_on_the_sensor():
     # Oracle: the ids of the shape and of the sensor that carry the media;
-    # with lgsurfaces there is no integrator for both (no lg_volpath).
+    # with lgsurfaces, lg_volpath renders both.
     s = mi.load_dict({
         "type": "scene", "integrator": {"type": "lg_path"},
         "cam": {"type": "perspective", "medium": FOG,
@@ -157,7 +157,7 @@ def test07_medium_on_an_lgsurface_and_on_the_sensor():
     assert len(said) == 1, said
     assert "the shape 'glass' (lgsurface) has an exterior medium" in said[0]
     assert "the sensor 'cam' is in the medium" in said[0]
-    assert "lg_volpath does not exist" in said[0] and "'other'" not in said[0]
+    assert "render it with 'lg_volpath'" in said[0] and "'other'" not in said[0]
 
 
 def test08_volpath_on_media_without_lgsurfaces_is_quiet():
