@@ -128,6 +128,9 @@ def test02_quick_run_render_and_latency(quick):
     assert set(e) == {"lg_path, lgsurface", "path, native sphere", "path, mesh"}
     assert all(m["mse"] > 0 and m["seconds"] > 0 for m in e.values())
     assert e["path, native sphere"]["mse_ratio"] == 1.0
+    md = res["media"]["methods"]
+    assert md["volpath, mesh"]["ratio_to_mesh"] == 1.0
+    assert all(m["seconds"] > 0 and m["image_mean"] > 0 for m in md.values())
     k = res["compile"]
     for key in S.PROBES:
         assert "error" not in k[key], k[key]

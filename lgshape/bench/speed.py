@@ -674,6 +674,57 @@ def bench_emitters(cfg: SpeedConfig, log, seeds=4):
     return rec
 
 
+def _media_scene(ball, integrator, res, spp):
+    """A sphere of radius 0.6 holding a scattering medium (null boundary),
+    over a floor, lit by a point light and a sky."""
+    import mitsuba as mi
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": integrator, "max_depth": 16},
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at([0, 0.3, 3], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res, "height": res,
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.3}},
+        "lamp": {"type": "point", "position": [1.5, 2, 1.5],
+                 "intensity": {"type": "rgb", "value": 10.0}},
+        "floor": {"type": "rectangle",
+                  "to_world": mi.ScalarTransform4f().translate([0, -0.7, 0])
+                  @ mi.ScalarTransform4f().rotate([1, 0, 0], -90) @ mi.ScalarTransform4f().scale(3),
+                  "bsdf": {"type": "diffuse"}},
+        "ball": {**ball, "bsdf": {"type": "null"},
+                 "interior": {"type": "homogeneous", "sigma_t": 2.0,
+                              "albedo": {"type": "rgb", "value": [0.8, 0.6, 0.3]}}}})
+
+
+def bench_media(cfg: SpeedConfig, log):
+    """A medium bounded by an implicit sphere under lg_volpath against the
+    same scene under Mitsuba's volpath with the sphere native and as a
+    marching-cubes mesh: render times (median of ``render_repeats`` after a
+    warm-up) and the ratios against the mesh."""
+    res, spp = cfg.render_res // 2, cfg.render_spp
+    spec = LIBRARY["sphere"](0.6)
+    with tempfile.TemporaryDirectory(prefix="lgshape-media-") as tmp:
+        v, faces = marching_mesh(spec, sample_grid(spec, cfg.mesh_res))
+        ply = os.path.join(tmp, "sphere.ply")
+        mitsuba_mesh(v, faces, "sphere").write_ply(ply)
+        cases = {"lg_volpath, lgsurface": ({"type": "lgsurface", "surface": "sphere",
+                                            "radius": 0.6}, "lg_volpath"),
+                 "volpath, native sphere": ({"type": "sphere", "radius": 0.6}, "volpath"),
+                 "volpath, mesh": ({"type": "ply", "filename": ply}, "volpath")}
+        rec = {"res": res, "spp": spp, "repeats": cfg.render_repeats,
+               "mesh_triangles": int(len(faces)), "methods": {}}
+        for key, (ball, integrator) in cases.items():
+            first, med, samples, mean = time_renders(_media_scene(ball, integrator, res, spp),
+                                                     spp, cfg.render_repeats)
+            rec["methods"][key] = {"first_s": first, "seconds": med, "image_mean": mean}
+            log(f"media {key}: {med:.3f} s (first {first:.2f} s), image mean {mean:.4f}")
+    mesh = rec["methods"]["volpath, mesh"]["seconds"]
+    for m in rec["methods"].values():
+        m["ratio_to_mesh"] = m["seconds"] / mesh
+    return rec
+
+
 # ---- First-image latency ------------------------------------------------------------
 
 def bench_compile(cfg: SpeedConfig, log, variant=VARIANT):
@@ -741,6 +792,7 @@ def run(log=None, quick=False, surfaces=None, cornell=True, compile_latency=True
         out["cornell"] = bench_cornell(cfg, log, meshes)
         out["gradients"] = bench_gradients(cfg, log, meshes)
         out["emitters"] = bench_emitters(cfg, log)
+        out["media"] = bench_media(cfg, log)
     meshes.clear()
     if compile_latency:
         out["compile"] = bench_compile(cfg, log, variant)
@@ -966,6 +1018,19 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
         for key, m in em["methods"].items():
             L.append(f"| {key} | {m['mse']:.3e} | {m['seconds']:.3f} | {m['mse_ratio']:.2f} | "
                      f"{m['mse_ratio_equal_time']:.2f} |")
+        L.append("")
+    md = results.get("media")
+    if md:
+        L.append("### Media: lg_volpath against volpath\n")
+        L.append(f"A scattering medium inside a sphere (null boundary) over a floor, {md['res']} x "
+                 f"{md['res']}, {md['spp']} spp, medians of {md['repeats']} renders: lg_volpath "
+                 "with the sphere as an lgsurface, Mitsuba's volpath with its native sphere and "
+                 f"with a marching-cubes mesh ({md['mesh_triangles']} triangles).\n")
+        L.append("| method | render s | first s | / mesh | image mean |")
+        L.append("|---|---|---|---|---|")
+        for key, m in md["methods"].items():
+            L.append(f"| {key} | {m['seconds']:.3f} | {m['first_s']:.2f} | "
+                     f"{m['ratio_to_mesh']:.2f} | {m['image_mean']:.4f} |")
         L.append("")
     k = results.get("compile")
     if k:
