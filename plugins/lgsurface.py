@@ -113,8 +113,8 @@ class LGSurface(mi.Mesh):
          periodic ones).
      * - (Nested plugin)
        - |emitter|
-       - An ``area`` emitter: the surface emits light (on the side its
-         normal points to). The lg integrators sample it themselves
+       - An ``area`` emitter of uniform radiance: the surface emits light
+         (on the side its normal points to); a textured radiance is refused. The lg integrators sample it themselves
          (:func:`.common.sample_emitter_direction`: Mitsuba's area emitter
          samples its shape in C++, which cannot reach this Python shape).
          Other emitter types are refused.
@@ -186,6 +186,16 @@ class LGSurface(mi.Mesh):
                     f"lgsurface: the emitter child '{name}' "
                     f"({props.get(name).class_name()}) cannot sit on a shape; only an "
                     "'area' emitter can")
+            if props.type(name) == mi.Properties.Type.Object and \
+                    isinstance(props.get(name), mi.Emitter) and \
+                    mi.has_flag(props.get(name).flags(), mi.EmitterFlags.SpatiallyVarying):
+                # Mitsuba's area emitter samples a textured radiance through
+                # its shape's C++ uv parameterization, which the placeholder
+                # mesh cannot give (the process aborts)
+                raise ValueError(
+                    f"lgsurface: the area emitter '{name}' has a textured radiance, which "
+                    "an lgsurface cannot emit yet: give it a uniform radiance (an rgb or a "
+                    "spectrum)")
         self._source = _read_surface(props)
         self._bbox_given = _read_bbox(props)
         self._hints = {"L": _positive(props, "L"), "G": _positive(props, "G"),

@@ -88,6 +88,19 @@ def test03_non_convex_emitter_against_bsdf_sampling():
     assert abs(a - b) <= 4 * (sa * sa + sb * sb) ** 0.5, (a, sa, b, sb)
 
 
+def test05_textured_radiance_refused():
+    # Oracle: the message names the emitter and says what works.
+    tex = {"type": "checkerboard"}
+    try:
+        mi.load_dict({"type": "scene", "lamp": {**lg_ball(), "light": {
+            "type": "area", "radiance": tex}}})
+        message = None
+    except Exception as err:              # (Mitsuba wraps the plugin's ValueError)
+        message = str(err)
+    assert message is not None and "'light' has a textured radiance" in message
+    assert "uniform radiance" in message
+
+
 def test04_other_emitters_refused():
     # Oracle: the message names the child and says only 'area' fits.
     try:
