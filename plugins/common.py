@@ -40,6 +40,27 @@ def refresh_infinite_emitters(scene: mi.Scene) -> None:
             emitter.set_scene(scene)
 
 
+def read_depths(integrator, props: mi.Properties) -> None:
+    """``max_depth`` (-1: no limit, kept as 2^32 - 1) and ``rr_depth`` of a
+    path tracer, as Mitsuba's ``path`` reads them, checked; set on
+    ``integrator`` (its ``PLUGIN`` names it in the errors)."""
+    name = integrator.PLUGIN
+    max_depth = props.get("max_depth", -1)
+    if max_depth < -1:
+        raise ValueError(f"{name}: 'max_depth' must be -1 (no limit) or >= 0")
+    integrator.max_depth = 0xFFFFFFFF if max_depth == -1 else int(max_depth)
+    integrator.rr_depth = int(props.get("rr_depth", 5))
+    if integrator.rr_depth <= 0:
+        raise ValueError(f"{name}: 'rr_depth' must be > 0")
+
+
+def describe_depths(integrator) -> str:
+    """``Class[max_depth = ..., rr_depth = ...]`` (``to_string``)."""
+    depth = -1 if integrator.max_depth == 0xFFFFFFFF else integrator.max_depth
+    return (f"{type(integrator).__name__}[\n  max_depth = {depth},\n"
+            f"  rr_depth = {integrator.rr_depth}\n]")
+
+
 def check(integrator, scene, sensor=0) -> None:
     """What the lg integrators do before a render: the checks of
     :func:`.checks.check_render` (media the integrator ignores, gradients it

@@ -57,13 +57,7 @@ class LGPathIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        max_depth = props.get("max_depth", -1)
-        if max_depth < -1:
-            raise ValueError("lg_path: 'max_depth' must be -1 (no limit) or >= 0")
-        self.max_depth = 0xFFFFFFFF if max_depth == -1 else int(max_depth)
-        self.rr_depth = int(props.get("rr_depth", 5))
-        if self.rr_depth <= 0:
-            raise ValueError("lg_path: 'rr_depth' must be > 0")
+        common.read_depths(self, props)
 
     @dr.syntax
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
@@ -149,5 +143,4 @@ class LGPathIntegrator(mi.SamplingIntegrator):
         return []
 
     def to_string(self):
-        depth = -1 if self.max_depth == 0xFFFFFFFF else self.max_depth
-        return f"LGPathIntegrator[\n  max_depth = {depth},\n  rr_depth = {self.rr_depth}\n]"
+        return common.describe_depths(self)

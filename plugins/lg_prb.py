@@ -84,13 +84,7 @@ class LGPRBIntegrator(RBIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        max_depth = props.get("max_depth", -1)
-        if max_depth < -1:
-            raise ValueError("lg_prb: 'max_depth' must be -1 (no limit) or >= 0")
-        self.max_depth = 0xFFFFFFFF if max_depth == -1 else int(max_depth)
-        self.rr_depth = int(props.get("rr_depth", 5))
-        if self.rr_depth <= 0:
-            raise ValueError("lg_prb: 'rr_depth' must be > 0")
+        common.read_depths(self, props)
         self.boundary = bool(props.get("boundary", True))
         self.band_width = float(props.get("band_width", 1.0))
         if not self.band_width > 0:
@@ -106,15 +100,17 @@ class LGPRBIntegrator(RBIntegrator):
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
         grad = super().render_forward(scene, params, sensor, seed, spp)
-        if self.boundary and self._moving(scene):
-            grad = grad + self._silhouettes(dr.ADMode.Forward, scene, sensor, seed, spp)
+        moving = self._moving(scene) if self.boundary else []
+        if moving:
+            grad = grad + self._silhouettes(dr.ADMode.Forward, scene, moving, sensor, seed, spp)
         return grad
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
         super().render_backward(scene, params, grad_in, sensor, seed, spp)
-        if self.boundary and self._moving(scene):
-            self._silhouettes(dr.ADMode.Backward, scene, sensor, seed, spp, grad_in)
+        moving = self._moving(scene) if self.boundary else []
+        if moving:
+            self._silhouettes(dr.ADMode.Backward, scene, moving, sensor, seed, spp, grad_in)
 
     # ---- Visibility: the primary silhouettes of lgsurfaces ----------------
 
@@ -123,7 +119,7 @@ class LGPRBIntegrator(RBIntegrator):
         """The lgsurfaces whose parameters have gradients (by scene index)."""
         return [k for k, s in enumerate(common.lg_shapes(scene)) if s.gradient_keys()]
 
-    def _silhouettes(self, mode, scene, sensor, seed, spp, grad_in=None):
+    def _silhouettes(self, mode, scene, moving, sensor, seed, spp, grad_in=None):
         """The boundary term of the primary silhouettes of the lgsurfaces
         whose parameters move (relaxed over a band of ``band_width`` pixels
         on the inside of each silhouette): with H = [S < 0] the ray's hit of
@@ -134,11 +130,11 @@ class LGPRBIntegrator(RBIntegrator):
         L_s is the hit ray's radiance and L_b that of the ray continued past
         the surface's exit (the background the silhouette uncovers), both
         one path sample. Forward: the gradient image of the term; backward:
-        the term's adjoint propagated (grad_in)."""
+        the term's adjoint propagated (grad_in). ``moving``: the indices of
+        those lgsurfaces (:meth:`_moving`)."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
         film = sensor.film()
-        moving = self._moving(scene)
         lgs = common.lg_shapes(scene)
         with dr.suspend_grad():
             sampler, spp = self.prepare(sensor, mi.sample_tea_32(seed, 0x51)[0], spp,
@@ -348,5 +344,4 @@ class LGPRBIntegrator(RBIntegrator):
         return []
 
     def to_string(self):
-        depth = -1 if self.max_depth == 0xFFFFFFFF else self.max_depth
-        return f"LGPRBIntegrator[\n  max_depth = {depth},\n  rr_depth = {self.rr_depth}\n]"
+        return common.describe_depths(self)

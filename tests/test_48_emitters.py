@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import VARIANT
+from lgshape.bench.speed import emitter_scene
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -27,19 +28,8 @@ def variant():
 
 
 def scene(integrator, emitter_shape, spp=64, **props):
-    return mi.load_dict({
-        "type": "scene", "integrator": {"type": integrator, **props},
-        "sensor": {"type": "perspective", "fov": 45,
-                   "to_world": mi.ScalarTransform4f().look_at([0, 0.5, 3], [0, 0, 0], [0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 32, "height": 32,
-                            "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": spp}},
-        "floor": {"type": "rectangle",
-                  "to_world": mi.ScalarTransform4f().translate([0, -0.3, 0])
-                  @ mi.ScalarTransform4f().rotate([1, 0, 0], -90) @ mi.ScalarTransform4f().scale(2),
-                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}},
-        "lamp": {**emitter_shape,
-                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 4.0}}}})
+    """The benchmark's emitter scene (a lamp over a floor), 32 x 32."""
+    return emitter_scene(emitter_shape, integrator, 32, spp, **props)
 
 
 def lg_ball():

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from conftest import VARIANT
+from lgshape.bench.speed import fog, media_scene
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -33,26 +34,8 @@ def ball(lg, bsdf, interior=None):
 
 
 def scene(integrator, shapes):
-    return mi.load_dict({
-        "type": "scene", "integrator": {"type": integrator, "max_depth": 16},
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": mi.ScalarTransform4f().look_at([0, 0.3, 3], [0, 0, 0], [0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 24, "height": 24,
-                            "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": 64}},
-        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.3}},
-        "lamp": {"type": "point", "position": [1.5, 2, 1.5],
-                 "intensity": {"type": "rgb", "value": 10.0}},
-        "floor": {"type": "rectangle",
-                  "to_world": mi.ScalarTransform4f().translate([0, -0.7, 0])
-                  @ mi.ScalarTransform4f().rotate([1, 0, 0], -90) @ mi.ScalarTransform4f().scale(3),
-                  "bsdf": {"type": "diffuse"}},
-        **shapes})
-
-
-def fog():
-    return {"type": "homogeneous", "sigma_t": 2.0,
-            "albedo": {"type": "rgb", "value": [0.8, 0.6, 0.3]}}
+    """The benchmark's media scene: ``shapes`` over a floor, 24 x 24."""
+    return media_scene(shapes, integrator, 24, 64)
 
 
 def absorbing():

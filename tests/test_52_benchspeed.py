@@ -123,13 +123,10 @@ def test02_quick_run_render_and_latency(quick):
     g = res["gradients"]
     for key in ("lg_prb", "prb", "lg_prb_shape"):
         assert g[key]["primal_s"] > 0 and g[key]["gradient_s"] > 0 and g[key]["grad_norm"] > 0
-    assert g["met_anchor"] == (g["lg_prb"]["ratio"] <= g["prb"]["ratio"])
     e = res["emitters"]["methods"]
     assert set(e) == {"lg_path, lgsurface", "path, native sphere", "path, mesh"}
     assert all(m["mse"] > 0 and m["seconds"] > 0 for m in e.values())
-    assert e["path, native sphere"]["mse_ratio"] == 1.0
     md = res["media"]["methods"]
-    assert md["volpath, mesh"]["ratio_to_mesh"] == 1.0
     assert all(m["seconds"] > 0 and m["image_mean"] > 0 for m in md.values())
     k = res["compile"]
     for key in S.PROBES:

@@ -612,12 +612,14 @@ def bench_gradients(cfg: SpeedConfig, log, meshes=None):
     return rec
 
 
-def _emitter_scene(lamp, integrator, res, spp):
-    """A lamp (an emitting sphere of radius 0.3 above a diffuse floor) seen
-    from the front: the emitter's own sampling decides most of the noise."""
+def emitter_scene(lamp, integrator, res=32, spp=64, **integrator_props):
+    """A lamp (a shape with an area emitter of radiance 4, e.g. a sphere of
+    radius 0.3 at (0, 0.4, 0)) above a diffuse floor, seen from the front:
+    the emitter's own sampling decides most of the noise (also the scene of
+    tests/test_48_emitters.py)."""
     import mitsuba as mi
     return mi.load_dict({
-        "type": "scene", "integrator": {"type": integrator, "max_depth": 3},
+        "type": "scene", "integrator": {"type": integrator, **integrator_props},
         "sensor": {"type": "perspective", "fov": 45,
                    "to_world": mi.ScalarTransform4f().look_at([0, 0.5, 3], [0, 0, 0], [0, 1, 0]),
                    "film": {"type": "hdrfilm", "width": res, "height": res,
@@ -651,12 +653,13 @@ def bench_emitters(cfg: SpeedConfig, log, seeds=4):
                                     "path"),
             "path, mesh": ({"type": "ply", "filename": ply, "to_world": move}, "path"),
         }
-        ref_scene = _emitter_scene(lamps["path, native sphere"][0], "path", res, spp * 64)
+        ref_scene = emitter_scene(lamps["path, native sphere"][0], "path", res, spp * 64,
+                                  max_depth=3)
         ref = np.asarray(mi.render(ref_scene, seed=999), np.float64)
         rec = {"res": res, "spp": spp, "reference_spp": spp * 64, "seeds": seeds,
                "mesh_triangles": int(len(faces)), "methods": {}}
         for key, (lamp, integrator) in lamps.items():
-            scene = _emitter_scene(lamp, integrator, res, spp)
+            scene = emitter_scene(lamp, integrator, res, spp, max_depth=3)
             mi.render(scene, seed=0)                       # compiles
             mse, secs = [], []
             for k in range(seeds):
@@ -674,9 +677,16 @@ def bench_emitters(cfg: SpeedConfig, log, seeds=4):
     return rec
 
 
-def _media_scene(ball, integrator, res, spp):
-    """A sphere of radius 0.6 holding a scattering medium (null boundary),
-    over a floor, lit by a point light and a sky."""
+def fog():
+    """The homogeneous scattering medium of the media scenes."""
+    return {"type": "homogeneous", "sigma_t": 2.0,
+            "albedo": {"type": "rgb", "value": [0.8, 0.6, 0.3]}}
+
+
+def media_scene(shapes, integrator, res=24, spp=64):
+    """``shapes`` (id -> shape dict: e.g. a sphere of radius 0.6 holding a
+    medium behind a null boundary) over a floor, lit by a point light and a
+    sky (also the scene of tests/test_49_volpath.py)."""
     import mitsuba as mi
     return mi.load_dict({
         "type": "scene", "integrator": {"type": integrator, "max_depth": 16},
@@ -692,9 +702,7 @@ def _media_scene(ball, integrator, res, spp):
                   "to_world": mi.ScalarTransform4f().translate([0, -0.7, 0])
                   @ mi.ScalarTransform4f().rotate([1, 0, 0], -90) @ mi.ScalarTransform4f().scale(3),
                   "bsdf": {"type": "diffuse"}},
-        "ball": {**ball, "bsdf": {"type": "null"},
-                 "interior": {"type": "homogeneous", "sigma_t": 2.0,
-                              "albedo": {"type": "rgb", "value": [0.8, 0.6, 0.3]}}}})
+        **shapes})
 
 
 def bench_media(cfg: SpeedConfig, log):
@@ -715,7 +723,8 @@ def bench_media(cfg: SpeedConfig, log):
         rec = {"res": res, "spp": spp, "repeats": cfg.render_repeats,
                "mesh_triangles": int(len(faces)), "methods": {}}
         for key, (ball, integrator) in cases.items():
-            first, med, samples, mean = time_renders(_media_scene(ball, integrator, res, spp),
+            shapes = {"ball": {**ball, "bsdf": {"type": "null"}, "interior": fog()}}
+            first, med, samples, mean = time_renders(media_scene(shapes, integrator, res, spp),
                                                      spp, cfg.render_repeats)
             rec["methods"][key] = {"first_s": first, "seconds": med, "image_mean": mean}
             log(f"media {key}: {med:.3f} s (first {first:.2f} s), image mean {mean:.4f}")
@@ -882,6 +891,12 @@ def _met(v):
     return "–" if v is None else ("yes" if v else "**no**")
 
 
+def _table(header, rows) -> list[str]:
+    """A markdown table (and the blank line after it)."""
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + \
+        ["| " + " | ".join(r) + " |" for r in rows] + [""]
+
+
 def report(results, chart_path="charts/speed.png") -> list[str]:
     meta, rows = results["meta"], results.get("rows", [])
     cfg = meta["config"]
@@ -992,14 +1007,11 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
                  "then `dr.backward` of the image mean), interleaved, medians of "
                  f"{gr['repeats']}; `prb` renders the same scene with the tangle as a "
                  f"marching-cubes mesh ({gr['mesh_res']}^3 samples).\n")
-        L.append("| integrator | parameters | primal s | gradient pass s | ratio |")
-        L.append("|---|---|---|---|---|")
-        for key in ("lg_prb", "prb", "lg_prb_shape"):
-            r = gr.get(key)
-            if r:
-                L.append(f"| {key.replace('_shape', '')} | {', '.join(r['parameters'])} | "
-                         f"{r['primal_s']:.3f} | {r['gradient_s']:.3f} | {r['ratio']:.2f} |")
-        L.append("")
+        L += _table(("integrator", "parameters", "primal s", "gradient pass s", "ratio"),
+                    [(key.replace("_shape", ""), ", ".join(r["parameters"]),
+                      f"{r['primal_s']:.3f}", f"{r['gradient_s']:.3f}", f"{r['ratio']:.2f}")
+                     for key, r in ((k, gr.get(k)) for k in ("lg_prb", "prb", "lg_prb_shape"))
+                     if r])
         L.append(f"lg_prb's ratio {gr['lg_prb']['ratio']:.2f} against prb's "
                  f"{gr['prb']['ratio']:.2f} ({'met' if gr['met_anchor'] else 'not met'}: no "
                  f"worse than prb's), and at most {gr['target_ratio']:g} "
@@ -1013,12 +1025,9 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
                  "lg_path samples the lgsurface in the cone of its bounding sphere; Mitsuba's "
                  "sphere samples its visible cap, the mesh "
                  f"({em['mesh_triangles']} triangles) its area.\n")
-        L.append("| method | MSE | render s | MSE / native | at equal time |")
-        L.append("|---|---|---|---|---|")
-        for key, m in em["methods"].items():
-            L.append(f"| {key} | {m['mse']:.3e} | {m['seconds']:.3f} | {m['mse_ratio']:.2f} | "
-                     f"{m['mse_ratio_equal_time']:.2f} |")
-        L.append("")
+        L += _table(("method", "MSE", "render s", "MSE / native", "at equal time"),
+                    [(key, f"{m['mse']:.3e}", f"{m['seconds']:.3f}", f"{m['mse_ratio']:.2f}",
+                      f"{m['mse_ratio_equal_time']:.2f}") for key, m in em["methods"].items()])
     md = results.get("media")
     if md:
         L.append("### Media: lg_volpath against volpath\n")
@@ -1026,12 +1035,10 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
                  f"{md['res']}, {md['spp']} spp, medians of {md['repeats']} renders: lg_volpath "
                  "with the sphere as an lgsurface, Mitsuba's volpath with its native sphere and "
                  f"with a marching-cubes mesh ({md['mesh_triangles']} triangles).\n")
-        L.append("| method | render s | first s | / mesh | image mean |")
-        L.append("|---|---|---|---|---|")
-        for key, m in md["methods"].items():
-            L.append(f"| {key} | {m['seconds']:.3f} | {m['first_s']:.2f} | "
-                     f"{m['ratio_to_mesh']:.2f} | {m['image_mean']:.4f} |")
-        L.append("")
+        L += _table(("method", "render s", "first s", "/ mesh", "image mean"),
+                    [(key, f"{m['seconds']:.3f}", f"{m['first_s']:.2f}",
+                      f"{m['ratio_to_mesh']:.2f}", f"{m['image_mean']:.4f}")
+                     for key, m in md["methods"].items()])
     k = results.get("compile")
     if k:
         L.append("### First-image latency\n")
