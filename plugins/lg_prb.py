@@ -230,7 +230,10 @@ class LGPRBIntegrator(RBIntegrator):
             # vertex: the direction towards it moves with both)
             with dr.resume_grad(when=not primal):
                 si = compute_interaction(scene, ray, hit, active=active)
-                if dr.hint(not primal, mode="scalar"):
+                # Does geometry move with the parameters? (Known while
+                # tracing: the same for every vertex of every path.)
+                moves = not primal and (dr.grad_enabled(si.p) or dr.grad_enabled(si.n))
+                if dr.hint(moves, mode="scalar"):
                     back = active & (depth > 0)
                     si_prev_d = compute_interaction(scene, ray_prev, hit_prev,
                                                     mi.RayFlags.Minimal, back)
@@ -257,7 +260,7 @@ class LGPRBIntegrator(RBIntegrator):
             with dr.resume_grad(when=not primal):
                 if dr.hint(not primal, mode="scalar"):
                     ds, em_weight = self._attach_emitter_sample(scene, si, ds, em_weight,
-                                                                active_em)
+                                                                active_em, moves)
                 wo = si.to_local(ds.d)
 
             # ------ Evaluate BSDF * cos(theta) and sample a direction ------
@@ -290,7 +293,7 @@ class LGPRBIntegrator(RBIntegrator):
             # -------------- Differential phase: this vertex --------------
             if dr.hint(not primal, mode="scalar"):
                 δL = self._propagate(mode, scene, bsdf, bsdf_ctx, si, ray_next, hit_next, L,
-                                     Le, Lr_dir, δL, active_next)
+                                     Le, Lr_dir, δL, active_next, moves)
 
             # ------------------------ The next vertex ------------------------
             ray_prev, hit_prev = ray, hit
@@ -302,38 +305,50 @@ class LGPRBIntegrator(RBIntegrator):
 
         return (L if primal else δL, valid_ray, [], L)
 
-    def _attach_emitter_sample(self, scene, si, ds, em_weight, active):
+    def _attach_emitter_sample(self, scene, si, ds, em_weight, active, moves):
         """The emitter sample's direction and weight as functions of the
-        vertex (its motion) and of the emitter's parameters: the sampled
-        emitter point stays fixed, the direction towards it and the
-        solid-angle density move with si.p (Mitsuba's prb does the same)."""
-        is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
-        is_surface = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Surface)
-        ds.d = dr.replace_grad(ds.d, dr.select(is_infinite, ds.d, dr.normalize(ds.p - si.p)))
+        vertex (its motion, where geometry ``moves``) and of the emitter's
+        parameters: the sampled emitter point stays fixed, the direction
+        towards it and the solid-angle density move with si.p (Mitsuba's
+        prb does the same)."""
+        if moves:
+            is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
+            ds.d = dr.replace_grad(ds.d, dr.select(is_infinite, ds.d,
+                                                   dr.normalize(ds.p - si.p)))
         value = scene.eval_emitter_direction(si, ds, active)
         inv_pdf = dr.select(ds.pdf != 0, dr.rcp(ds.pdf), 0.0)
         em_weight = dr.replace_grad(em_weight, value * dr.detach(inv_pdf))
+        if not moves:
+            return ds, em_weight
+        is_surface = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Surface)
         J = solid_angle_to_area_jacobian(si.p, dr.detach(ds.p), dr.detach(ds.n),
                                          active & is_surface)
         return ds, em_weight * dr.relative_grad(J)
 
     def _propagate(self, mode, scene, bsdf, bsdf_ctx, si, ray_next, hit_next, L, Le, Lr_dir,
-                   δL, active_next):
+                   δL, active_next, moves):
         """The differentiable radiance leaving this vertex: its emission,
         its emitter sample, and the rest of the path (L, already replayed
-        out of the primal value) through the BSDF value and the area
-        measure of the next vertex, which move with the parameters; then
-        δL times it, backward or forward. Returns δL (forward: with this
-        vertex's derivative added)."""
-        si_next = compute_interaction(scene, ray_next, hit_next, mi.RayFlags.Minimal,
-                                      active_next)
+        out of the primal value) through the BSDF value and, where geometry
+        ``moves``, the area measure of the next vertex; then δL times it,
+        backward or forward. Returns δL (forward: with this vertex's
+        derivative added). Where nothing moves, the direction to the next
+        vertex and its measure carry no derivative: the next vertex is not
+        computed."""
+        if moves:
+            si_next = compute_interaction(scene, ray_next, hit_next, mi.RayFlags.Minimal,
+                                          active_next)
         with dr.resume_grad():
-            next_ok = active_next & si_next.is_valid()
-            J = solid_angle_to_area_jacobian(si.p, si_next.p, si_next.n, next_ok)
-            wo_world = dr.replace_grad(ray_next.d, dr.select(
-                next_ok, dr.normalize(si_next.p - si.p), ray_next.d))
+            if moves:
+                next_ok = active_next & si_next.is_valid()
+                J = dr.relative_grad(solid_angle_to_area_jacobian(si.p, si_next.p, si_next.n,
+                                                                  next_ok))
+                wo_world = dr.replace_grad(ray_next.d, dr.select(
+                    next_ok, dr.normalize(si_next.p - si.p), ray_next.d))
+            else:
+                J, wo_world = 1.0, ray_next.d
             bsdf_val = bsdf.eval(bsdf_ctx, si, si.to_local(wo_world), active_next)
-            Lr_ind = L * dr.relative_grad(bsdf_val) * dr.relative_grad(J)
+            Lr_ind = L * dr.relative_grad(bsdf_val) * J
             Lo = Le + Lr_dir + Lr_ind
             if mode == dr.ADMode.Backward:
                 dr.backward_from(δL * Lo)

@@ -28,6 +28,7 @@ from lgshape.arraymath import DrJitMath
 from lgshape.expr import evaluate, gradient
 from lgshape.expr.node import topological
 from lgshape.expr.parser import free_names
+from .area import replace_area_light
 
 #: Relative distance (times the world box diagonal) below which a ray does not
 #: report a hit: a ray spawned from the surface must not find the point it
@@ -113,11 +114,13 @@ class LGSurface(mi.Mesh):
          periodic ones).
      * - (Nested plugin)
        - |emitter|
-       - An ``area`` emitter of uniform radiance: the surface emits light
-         (on the side its normal points to); a textured radiance is refused. The lg integrators sample it themselves
-         (:func:`.common.sample_emitter_direction`: Mitsuba's area emitter
-         samples its shape in C++, which cannot reach this Python shape).
-         Other emitter types are refused.
+       - An ``area`` emitter: the surface emits light (on the side its
+         normal points to), of a uniform or textured radiance (evaluated at
+         the surface's uv). It is replaced by :class:`.area.LGAreaLight`
+         (the same radiance and sampling weight), which the lg integrators
+         sample themselves (:func:`.common.sample_emitter_direction`:
+         Mitsuba's area emitter samples its shape in C++, which cannot reach
+         this Python shape). Other emitter types are refused.
 
     The surface is rendered by the ``lg_path``, ``lg_direct``, ``lg_aov``,
     ``lg_volpath`` and ``lg_prb`` integrators; Mitsuba's own integrators (``path``, ``volpath``, ``prb``,
@@ -187,15 +190,9 @@ class LGSurface(mi.Mesh):
                     f"({props.get(name).class_name()}) cannot sit on a shape; only an "
                     "'area' emitter can")
             if props.type(name) == mi.Properties.Type.Object and \
-                    isinstance(props.get(name), mi.Emitter) and \
-                    mi.has_flag(props.get(name).flags(), mi.EmitterFlags.SpatiallyVarying):
-                # Mitsuba's area emitter samples a textured radiance through
-                # its shape's C++ uv parameterization, which the placeholder
-                # mesh cannot give (the process aborts)
-                raise ValueError(
-                    f"lgsurface: the area emitter '{name}' has a textured radiance, which "
-                    "an lgsurface cannot emit yet: give it a uniform radiance (an rgb or a "
-                    "spectrum)")
+                    isinstance(props.get(name), mi.Emitter):
+                # evaluated at this surface's uv, sampled by the lg integrators
+                props[name] = replace_area_light(props.get(name))
         self._source = _read_surface(props)
         self._bbox_given = _read_bbox(props)
         self._hints = {"L": _positive(props, "L"), "G": _positive(props, "G"),
@@ -235,7 +232,7 @@ class LGSurface(mi.Mesh):
     # ---- Scene parameters (mi.traverse / params.update()) -------------------
 
     def traverse(self, callback):
-        """The BSDF (and any medium) as children, with Mitsuba's flags, then
+        """The BSDF (and any emitter or medium) as children, with Mitsuba's flags, then
         ``to_world`` (an ``AffineTransform4f``) and every numeric parameter
         of f (a ``Float``: a library surface's parameters, an expression's
         named constants, a primitives file's ``smoothness``/``threshold``),
@@ -245,7 +242,8 @@ class LGSurface(mi.Mesh):
         the surface's (:meth:`_set_placeholder` reaches them)."""
         if self._mesh_traversal:
             return super().traverse(callback)
-        for name, child in (("bsdf", self.bsdf()), ("interior_medium", self.interior_medium()),
+        for name, child in (("bsdf", self.bsdf()), ("emitter", self.emitter()),
+                            ("interior_medium", self.interior_medium()),
                             ("exterior_medium", self.exterior_medium())):
             if child is not None:
                 callback.put(name, child, mi.ParamFlags.Differentiable)

@@ -612,11 +612,13 @@ def bench_gradients(cfg: SpeedConfig, log, meshes=None):
     return rec
 
 
-def emitter_scene(lamp, integrator, res=32, spp=64, **integrator_props):
-    """A lamp (a shape with an area emitter of radiance 4, e.g. a sphere of
-    radius 0.3 at (0, 0.4, 0)) above a diffuse floor, seen from the front:
-    the emitter's own sampling decides most of the noise (also the scene of
+def emitter_scene(lamp, integrator, res=32, spp=64, radiance=None, **integrator_props):
+    """A lamp (a shape with an area emitter of radiance ``radiance``, a
+    texture's dict, default a uniform 4; e.g. a sphere of radius 0.3 at
+    (0, 0.4, 0)) above a diffuse floor, seen from the front: the emitter's
+    own sampling decides most of the noise (also the scene of
     tests/test_48_emitters.py)."""
+    radiance = radiance or {"type": "rgb", "value": 4.0}
     import mitsuba as mi
     return mi.load_dict({
         "type": "scene", "integrator": {"type": integrator, **integrator_props},
@@ -629,7 +631,7 @@ def emitter_scene(lamp, integrator, res=32, spp=64, **integrator_props):
                   "to_world": mi.ScalarTransform4f().translate([0, -0.3, 0])
                   @ mi.ScalarTransform4f().rotate([1, 0, 0], -90) @ mi.ScalarTransform4f().scale(2),
                   "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.6}}},
-        "lamp": {**lamp, "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 4.0}}}})
+        "lamp": {**lamp, "emitter": {"type": "area", "radiance": radiance}}})
 
 
 def bench_emitters(cfg: SpeedConfig, log, seeds=4):
