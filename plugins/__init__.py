@@ -1,6 +1,8 @@
 """Mitsuba plugins of lgshape: the ``lgsurface`` shape and the ``lg_path``,
-``lg_direct``, ``lg_aov`` and ``lg_prb`` (differentiable) integrators that
-render it next to native geometry. One file per plugin id; shared integrator code is in :mod:`.common`.
+``lg_direct``, ``lg_aov``, ``lg_volpath`` and ``lg_prb`` (differentiable)
+integrators that render it next to native geometry. One file per plugin
+id; shared integrator code is in :mod:`.common`, the emitter standing for
+an lgsurface's ``area`` child in :mod:`.area`.
 
 The last stage of the pipeline (expression -> bounds -> grid -> trace ->
 plugins): only this package and the command line import Mitsuba.

@@ -139,3 +139,34 @@ def test04_other_emitters_refused():
     except Exception as err:              # (Mitsuba wraps the plugin's ValueError)
         message = str(err)
     assert message is not None and "only an 'area' emitter" in message
+
+
+def test07_sampling_weight_respected():
+    # Oracle: Mitsuba's emitter choice, pdf_emitter = w / sum of weights
+    # (here the lgsurface's emitter against a constant sky of weight 1), and
+    # unbiasedness: the image mean does not depend on the weights (means of
+    # 4 seeds at weights 4 and 0.25 agree within 4 standard errors).
+    def make(weight):
+        return mi.load_dict({
+            "type": "scene", "integrator": {"type": "lg_path", "max_depth": 3},
+            "sensor": {"type": "perspective", "fov": 45,
+                       "to_world": mi.ScalarTransform4f().look_at([0, 0.5, 3], [0, 0, 0],
+                                                                  [0, 1, 0]),
+                       "film": {"type": "hdrfilm", "width": 32, "height": 32,
+                                "rfilter": {"type": "box"}},
+                       "sampler": {"type": "independent", "sample_count": 64}},
+            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.2}},
+            "floor": {"type": "rectangle",
+                      "to_world": mi.ScalarTransform4f().translate([0, -0.3, 0])
+                      @ mi.ScalarTransform4f().rotate([1, 0, 0], -90)},
+            "lamp": {**lg_ball(), "emitter": {"type": "area", "sampling_weight": weight,
+                                              "radiance": {"type": "rgb", "value": 4.0}}}})
+    s = make(4.0)
+    lamp = [sh for sh in s.shapes() if getattr(sh, "IS_LGSURFACE", False)][0]
+    assert lamp.emitter().sampling_weight() == 4.0
+    index = next(i for i, e in enumerate(s.emitters()) if e.ptr == lamp.emitter().ptr)
+    assert abs(float(s.pdf_emitter(index)[0]) - 0.8) <= 1e-6
+    a, sa = means(lambda: make(4.0))
+    b, sb = means(lambda: make(0.25))
+    assert a > 0.1
+    assert abs(a - b) <= 4 * (sa * sa + sb * sb) ** 0.5, (a, sa, b, sb)

@@ -655,28 +655,49 @@ def bench_emitters(cfg: SpeedConfig, log, seeds=4):
                                     "path"),
             "path, mesh": ({"type": "ply", "filename": ply, "to_world": move}, "path"),
         }
-        ref_scene = emitter_scene(lamps["path, native sphere"][0], "path", res, spp * 64,
-                                  max_depth=3)
-        ref = np.asarray(mi.render(ref_scene, seed=999), np.float64)
         rec = {"res": res, "spp": spp, "reference_spp": spp * 64, "seeds": seeds,
-               "mesh_triangles": int(len(faces)), "methods": {}}
-        for key, (lamp, integrator) in lamps.items():
-            scene = emitter_scene(lamp, integrator, res, spp, max_depth=3)
-            mi.render(scene, seed=0)                       # compiles
-            mse, secs = [], []
-            for k in range(seeds):
-                t0 = time.perf_counter()
-                img = np.asarray(mi.render(scene, seed=k + 1), np.float64)
-                secs.append(time.perf_counter() - t0)
-                mse.append(float(np.mean((img - ref) ** 2)))
-            rec["methods"][key] = {"mse": float(np.mean(mse)), "seconds": float(np.median(secs))}
-            log(f"emitter {key}: MSE {np.mean(mse):.3e} at {spp} spp, {np.median(secs):.3f} s")
-    native = rec["methods"]["path, native sphere"]
-    for key, m in rec["methods"].items():
-        m["mse_ratio"] = m["mse"] / native["mse"]
-        # at equal time: MSE scales as 1 / spp, spp as 1 / time per sample
-        m["mse_ratio_equal_time"] = m["mse_ratio"] * m["seconds"] / native["seconds"]
+               "mesh_triangles": int(len(faces))}
+
+        def measure(lamps, radiance=None):
+            ref_scene = emitter_scene(lamps["path, native sphere"][0], "path", res, spp * 64,
+                                      radiance=radiance, max_depth=3)
+            ref = np.asarray(mi.render(ref_scene, seed=999), np.float64)
+            methods = {}
+            for key, (lamp, integrator) in lamps.items():
+                scene = emitter_scene(lamp, integrator, res, spp, radiance=radiance,
+                                      max_depth=3)
+                mi.render(scene, seed=0)                       # compiles
+                mse, secs = [], []
+                for k in range(seeds):
+                    t0 = time.perf_counter()
+                    img = np.asarray(mi.render(scene, seed=k + 1), np.float64)
+                    secs.append(time.perf_counter() - t0)
+                    mse.append(float(np.mean((img - ref) ** 2)))
+                methods[key] = {"mse": float(np.mean(mse)), "seconds": float(np.median(secs))}
+                log(f"emitter {key}{', textured' if radiance else ''}: MSE {np.mean(mse):.3e} "
+                    f"at {spp} spp, {np.median(secs):.3f} s")
+            native = methods["path, native sphere"]
+            for m in methods.values():
+                m["mse_ratio"] = m["mse"] / native["mse"]
+                # at equal time: MSE scales as 1 / spp, spp as 1 / time per sample
+                m["mse_ratio_equal_time"] = m["mse_ratio"] * m["seconds"] / native["seconds"]
+            return methods
+
+        rec["methods"] = measure(lamps)
+        # a textured radiance, the lgsurface against the native sphere (the
+        # same uv convention)
+        rec["textured"] = measure({k: lamps[k] for k in ("lg_path, lgsurface",
+                                                         "path, native sphere")},
+                                  textured_radiance())
     return rec
+
+
+def textured_radiance():
+    """The textured radiance of the emitter benchmark: a checkerboard of
+    radiance 0.5 and 6 on a 12 x 6 grid of the surface's uv."""
+    import mitsuba as mi
+    return {"type": "checkerboard", "color0": 0.5, "color1": 6.0,
+            "to_uv": mi.ScalarTransform4f().scale([12, 6, 1])}
 
 
 def fog():
@@ -1030,6 +1051,13 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
         L += _table(("method", "MSE", "render s", "MSE / native", "at equal time"),
                     [(key, f"{m['mse']:.3e}", f"{m['seconds']:.3f}", f"{m['mse_ratio']:.2f}",
                       f"{m['mse_ratio_equal_time']:.2f}") for key, m in em["methods"].items()])
+        if em.get("textured"):
+            L.append("The same with a textured radiance (a checkerboard of 0.5 and 6 on a "
+                     "12 x 6 grid of uv; the reference renders it the same way):\n")
+            L += _table(("method", "MSE", "render s", "MSE / native", "at equal time"),
+                        [(key, f"{m['mse']:.3e}", f"{m['seconds']:.3f}", f"{m['mse_ratio']:.2f}",
+                          f"{m['mse_ratio_equal_time']:.2f}")
+                         for key, m in em["textured"].items()])
     md = results.get("media")
     if md:
         L.append("### Media: lg_volpath against volpath\n")
