@@ -110,9 +110,6 @@ def _define():
         def traverse(self, callback):
             callback.put("radiance", self.radiance, mi.ParamFlags.Differentiable)
 
-        def parameters_changed(self, keys=[]):
-            pass
-
         def to_string(self):
             return f"LGAreaLight[\n  radiance = {self.radiance}\n]"
 

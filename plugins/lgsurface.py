@@ -182,17 +182,16 @@ class LGSurface(mi.Mesh):
 
     def __init__(self, props: mi.Properties):
         for name in props.keys():
-            if props.type(name) == mi.Properties.Type.Object and \
-                    isinstance(props.get(name), mi.Emitter) and \
-                    props.get(name).class_name() != "AreaLight":
+            if props.type(name) != mi.Properties.Type.Object or \
+                    not isinstance(props.get(name), mi.Emitter):
+                continue
+            if props.get(name).class_name() != "AreaLight":
                 raise ValueError(
                     f"lgsurface: the emitter child '{name}' "
                     f"({props.get(name).class_name()}) cannot sit on a shape; only an "
                     "'area' emitter can")
-            if props.type(name) == mi.Properties.Type.Object and \
-                    isinstance(props.get(name), mi.Emitter):
-                # evaluated at this surface's uv, sampled by the lg integrators
-                props[name] = replace_area_light(props.get(name))
+            # evaluated at this surface's uv, sampled by the lg integrators
+            props[name] = replace_area_light(props.get(name))
         self._source = _read_surface(props)
         self._bbox_given = _read_bbox(props)
         self._hints = {"L": _positive(props, "L"), "G": _positive(props, "G"),

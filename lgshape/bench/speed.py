@@ -1048,16 +1048,16 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
                  "lg_path samples the lgsurface in the cone of its bounding sphere; Mitsuba's "
                  "sphere samples its visible cap, the mesh "
                  f"({em['mesh_triangles']} triangles) its area.\n")
-        L += _table(("method", "MSE", "render s", "MSE / native", "at equal time"),
-                    [(key, f"{m['mse']:.3e}", f"{m['seconds']:.3f}", f"{m['mse_ratio']:.2f}",
-                      f"{m['mse_ratio_equal_time']:.2f}") for key, m in em["methods"].items()])
+        def noise_table(methods):
+            return _table(("method", "MSE", "render s", "MSE / native", "at equal time"),
+                          [(key, f"{m['mse']:.3e}", f"{m['seconds']:.3f}",
+                            f"{m['mse_ratio']:.2f}", f"{m['mse_ratio_equal_time']:.2f}")
+                           for key, m in methods.items()])
+        L += noise_table(em["methods"])
         if em.get("textured"):
             L.append("The same with a textured radiance (a checkerboard of 0.5 and 6 on a "
                      "12 x 6 grid of uv; the reference renders it the same way):\n")
-            L += _table(("method", "MSE", "render s", "MSE / native", "at equal time"),
-                        [(key, f"{m['mse']:.3e}", f"{m['seconds']:.3f}", f"{m['mse_ratio']:.2f}",
-                          f"{m['mse_ratio_equal_time']:.2f}")
-                         for key, m in em["textured"].items()])
+            L += noise_table(em["textured"])
     md = results.get("media")
     if md:
         L.append("### Media: lg_volpath against volpath\n")
