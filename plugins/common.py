@@ -106,20 +106,25 @@ class Hit:
         return out
 
 
-def ray_intersect_preliminary(scene: mi.Scene, ray: mi.Ray3f, active=True) -> Hit:
+def ray_intersect_preliminary(scene: mi.Scene, ray: mi.Ray3f, active=True,
+                              search=True) -> Hit:
     """The nearest hit along ``ray`` among native shapes and lgsurfaces
     (:class:`Hit`). Each lgsurface is searched in front of the nearest hit
     found so far; a ray spawned from an lgsurface does not hit it again at
-    its origin (see :data:`lgsurface.SELF_HIT_EPSILON`)."""
+    its origin (see :data:`lgsurface.SELF_HIT_EPSILON`). ``search``: the
+    lanes where the lgsurfaces are searched; elsewhere the nearest native
+    hit is the answer (for a pass that knows no lgsurface is nearer, as
+    lg_prb's replay)."""
     active = mi.Bool(active)
     pi = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
     t_near = dr.select(pi.is_valid(), pi.t, ray.maxt)
     nearest = mi.UInt32(0)
     ray_k = mi.Ray3f(ray)
+    searched = active & search
     for k, shape in enumerate(lg_shapes(scene)):
         ray_k.maxt = t_near
-        t, hit = shape.intersect(ray_k, active)
-        closer = active & hit & (t < t_near)
+        t, hit = shape.intersect(ray_k, searched)
+        closer = searched & hit & (t < t_near)
         t_near = dr.select(closer, t, t_near)
         nearest = dr.select(closer, k + 1, nearest)
     pi = dr.select(nearest == 0, pi, dr.zeros(mi.PreliminaryIntersection3f))

@@ -12,6 +12,77 @@ from .common import (Hit, compute_interaction, mis_weight, pdf_emitter_direction
                      skip_area_emitters)
 
 
+#: How many of a path's lgsurface vertices the primal pass hands the replay
+#: (their distance and surface: the replay does not search for them again)
+RECORDED_HITS = 4
+
+
+def _new_record():
+    """The primal pass's record of a path, empty: (lit, on_lg, ids, ts,
+    count). Bit i of ``lit``: the emitter sample of vertex i (i < 32) is
+    unoccluded; bit i of ``on_lg``: vertex i (the camera's hit 0 not
+    recorded) lies on an lgsurface; the first :data:`RECORDED_HITS` of
+    those vertices' surfaces (8 bits each in ``ids``: scene index + 1) and
+    distances (``ts``); ``count``: the lgsurface vertices so far. Its size
+    does not depend on the path's length."""
+    return mi.UInt32(0), mi.UInt32(0), mi.UInt32(0), mi.Vector4f(dr.inf), mi.UInt32(0)
+
+
+def _bit(vertex):
+    """Vertex ``vertex``'s bit in a record's masks (none from 32 on)."""
+    return dr.select(vertex < 32, mi.UInt32(1) << dr.minimum(vertex, 31), 0)
+
+
+def _visibility(scene, ray, active, tested, primal, record, vertex):
+    """The emitter sample's visibility (``active`` where its shadow ray
+    ``ray`` is unoccluded; ``tested`` lanes are known already) and the
+    record: the primal pass tests and records it, the replay takes it from
+    the record (testing only from vertex 32 on)."""
+    lit, *rest = record
+    if primal:
+        active = active & ~ray_test(scene, ray, active & ~tested)
+        return active, (lit | dr.select(active, _bit(vertex), 0), *rest)
+    known = vertex < 32
+    occluded = ray_test(scene, ray, active & ~tested & ~known)
+    return active & dr.select(known, (lit & _bit(vertex)) != 0, ~occluded), record
+
+
+def _record(record, vertex, hit, keep_hits=True):
+    """``record`` with ``hit`` (vertex ``vertex``) added where it is on an
+    lgsurface (:func:`_new_record`); ``keep_hits``: keep the first hits'
+    distances and surfaces too (not where the scene has more lgsurfaces
+    than 8 bits can name)."""
+    lit, on_lg, ids, ts, count = record
+    on = (vertex < 32) & (hit.lg != 0)
+    on_lg = on_lg | dr.select(on, _bit(vertex), 0)
+    if keep_hits:
+        for j in range(RECORDED_HITS):
+            ts[j] = dr.select(on & (count == j), hit.t, ts[j])
+        ids = ids | dr.select(on & (count < RECORDED_HITS),
+                              hit.lg << (8 * dr.minimum(count, RECORDED_HITS - 1)), 0)
+    return lit, on_lg, ids, ts, count + dr.select(on, 1, 0)
+
+
+def _replayed_hit(scene, ray, active, record, vertex, keep_hits=True):
+    """The replay's hit along ``ray`` (vertex ``vertex``: the primal pass's
+    hit there, the same ray) and ``record`` with its count advanced: taken
+    from the record where it holds it, searched among the native shapes
+    only where the primal pass found no lgsurface, searched fully beyond
+    the recorded vertices."""
+    lit, on_lg, ids, ts, count = record
+    on = (on_lg & _bit(vertex)) != 0
+    kept = on & (count < RECORDED_HITS) if keep_hits else mi.Bool(False)
+    hit = ray_intersect_preliminary(scene, ray, active & ~kept, on | (vertex >= 32))
+    if keep_hits:
+        t = ts[0]
+        for j in range(1, RECORDED_HITS):
+            t = dr.select(count == j, ts[j], t)
+        lg = (ids >> (8 * dr.minimum(count, RECORDED_HITS - 1))) & 0xFF
+        hit = Hit(pi=dr.select(kept, dr.zeros(mi.PreliminaryIntersection3f), hit.pi),
+                  lg=dr.select(kept, lg, hit.lg), t=dr.select(kept, t, hit.t))
+    return hit, (lit, on_lg, ids, ts, count + dr.select(on, 1, 0))
+
+
 class LGPRBIntegrator(RBIntegrator):
     r"""
     .. _integrator-lg_prb:
@@ -49,7 +120,11 @@ class LGPRBIntegrator(RBIntegrator):
     conventions it follows (path replay: the primal pass, then a second pass
     with the same samples that propagates the adjoint radiance vertex by
     vertex, so memory does not grow with the path length). Its primal image
-    is ``lg_path``'s: the same samples in the same order.
+    is ``lg_path``'s: the same samples in the same order. The primal pass
+    also hands the replay a fixed-size record of each path (:func:`_record`:
+    which of its first 32 emitter samples were unoccluded, which vertices
+    lie on lgsurfaces and the first four of those hits), so that the replay
+    repeats no shadow test and no lgsurface search there.
 
     It differentiates Mitsuba's plugins as ``prb`` does (BSDFs, textures,
     emitters, native shapes' interior derivatives) and an lgsurface's own
@@ -195,23 +270,32 @@ class LGPRBIntegrator(RBIntegrator):
     def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
                δL, state_in, active: mi.Bool, **kwargs):
         """One pass of path replay (``mode``: primal, backward or forward;
-        see ``ADIntegrator.sample``). The primal pass returns the radiance;
+        see ``ADIntegrator.sample``). The primal pass returns the radiance
+        and, as its state, (radiance, the path's record: :func:`_new_record`);
         the others replay the same path, subtracting each vertex's
-        contribution from the primal radiance ``state_in`` to know what the
-        rest of the path brings, and propagate ``δL`` through each vertex's
-        differentiable terms."""
+        contribution from the primal radiance in ``state_in`` to know what
+        the rest of the path brings, taking the record's hits and
+        visibilities instead of tracing them again, and propagate ``δL``
+        through each vertex's differentiable terms."""
         primal = mode == dr.ADMode.Primal
         bsdf_ctx = mi.BSDFContext()
 
         # --------------------- Configure loop state ----------------------
         ray = mi.Ray3f(dr.detach(ray))
         depth = mi.UInt32(0)                                 # Vertex depth
-        L = mi.Spectrum(0 if primal else state_in)           # Radiance (left to replay)
+        L = mi.Spectrum(0 if primal else state_in[0])        # Radiance (left to replay)
+        # The primal pass's record of the path's lgsurface hits (_record):
+        # the replay takes them from it instead of searching again
+        record = _new_record() if primal else (*state_in[1], mi.UInt32(0))
+        keep_hits = len(common.lg_shapes(scene)) < 256
+        vertex = mi.UInt32(0)                                # Vertex index
         δL = mi.Spectrum(δL if δL is not None else 0)        # Adjoint radiance
         β = mi.Spectrum(1)                                   # Path throughput
         η = mi.Float(1)                                      # Relative IOR
         active = mi.Bool(active)
         valid_ray = mi.Bool(not self.hide_emitters and scene.environment() is not None)
+        # (the camera rays' search, outside the loop, runs frozen and fast;
+        # taken from the record it would wait for the primal pass)
         hit = ray_intersect_preliminary(scene, ray, active)
         if dr.hint(self.hide_emitters, mode="scalar"):
             ray, hit = skip_area_emitters(scene, ray, hit, active)
@@ -256,7 +340,8 @@ class LGPRBIntegrator(RBIntegrator):
             ds, em_weight, tested = sample_emitter_direction(scene, si, sampler.next_2d(),
                                                              active_em)
             active_em &= ds.pdf != 0
-            active_em &= ~ray_test(scene, si.spawn_ray_to(ds.p), active_em & ~tested)
+            active_em, record = _visibility(scene, si.spawn_ray_to(ds.p), active_em, tested,
+                                            primal, record, vertex)
             with dr.resume_grad(when=not primal):
                 if dr.hint(not primal, mode="scalar"):
                     ds, em_weight = self._attach_emitter_sample(scene, si, ds, em_weight,
@@ -288,7 +373,13 @@ class LGPRBIntegrator(RBIntegrator):
             β[rr_active] *= dr.rcp(rr_prob)
             active_next &= (~rr_active | rr_continue) & (β_max != 0)
 
-            hit_next = ray_intersect_preliminary(scene, ray_next, active_next)
+            vertex += 1
+            if dr.hint(primal, mode="scalar"):
+                hit_next = ray_intersect_preliminary(scene, ray_next, active_next)
+                record = _record(record, vertex, hit_next, keep_hits)
+            else:
+                hit_next, record = _replayed_hit(scene, ray_next, active_next, record, vertex,
+                                                 keep_hits)
 
             # -------------- Differential phase: this vertex --------------
             if dr.hint(not primal, mode="scalar"):
@@ -303,7 +394,7 @@ class LGPRBIntegrator(RBIntegrator):
             ray, hit = ray_next, hit_next
             active = active_next
 
-        return (L if primal else δL, valid_ray, [], L)
+        return (L if primal else δL, valid_ray, [], (L, record[:4]))
 
     def _attach_emitter_sample(self, scene, si, ds, em_weight, active, moves):
         """The emitter sample's direction and weight as functions of the

@@ -371,3 +371,35 @@ def test14_blend_threshold(tmp_path):
     g, g_se = mean_gradient(make, "obj.threshold")
     assert abs(fd) > 10 * fd_se
     assert abs(g - fd) <= 4 * (fd_se ** 2 + g_se ** 2) ** 0.5, (g, g_se, fd, fd_se)
+
+
+def test15_long_paths_inside_an_emitting_sphere():
+    # Oracle: the furnace in closed form. Seen from inside, a sphere that
+    # emits Le and reflects rho (diffuse) everywhere: every vertex of every
+    # path lies on it, and a path of max_depth D brings Le sum_{k<D} rho^k
+    # whatever its directions, so the image is that and its derivative in
+    # rho is Le sum_k k rho^(k-1). D = 40 and no Russian roulette: the replay
+    # goes past the vertices the primal pass records (32, and the first 4
+    # lgsurface hits); another lgsurface before it in the scene, never hit,
+    # makes the sphere's index 2. Each pixel's estimate is noisy only
+    # through the emitter sampling's MIS (BSDF and cone samples of the same
+    # uniform emission): the mean over pixels within 4 standard errors.
+    D, rho, Le = 40, 0.8, 1.0
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "lg_prb", "max_depth": D, "rr_depth": 1000},
+        "sensor": sensor([0, 0, 0], [0, 0, -1], fov=60, res=16, spp=16),
+        "far": {"type": "lgsurface", "surface": "sphere", "radius": 0.1,
+                "to_world": mi.ScalarTransform4f().translate([0, 0, 10])},
+        "wall": {"type": "lgsurface", "surface": "sphere", "radius": 1.0,
+                 "flip_normals": True,
+                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho}},
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": Le}}}})
+    k = np.arange(D)
+    image = Le * np.sum(rho ** k)
+    slope = Le * np.sum(k[1:] * rho ** (k[1:] - 1))
+    for got, expected in ((render(scene), image),
+                          (ad_forward(scene, "wall.bsdf.reflectance.value"), slope)):
+        se = got.std() / np.sqrt(got.size)
+        assert abs(got.mean() - expected) <= 4 * se + ROUND * U * expected, \
+            (got.mean(), se, expected)
