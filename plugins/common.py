@@ -10,6 +10,7 @@ the integrators use Mitsuba's BSDFs and emitters unchanged.
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import drjit as dr
@@ -104,6 +105,59 @@ class Hit:
             if shape.emitter() is not None:
                 out = dr.select(self.lg == k + 1, mi.EmitterPtr(shape.emitter()), out)
         return out
+
+
+@contextlib.contextmanager
+def traced_searches(scene):
+    """Within it, the lgsurfaces' standalone searches are traced into the
+    caller's kernel rather than run frozen (:meth:`lgshape.trace.Surface.trace`):
+    for a pass of several searches over few lanes, each frozen call would
+    first evaluate its inputs in a kernel of its own."""
+    surfaces = [shape.surface for shape in lg_shapes(scene)]
+    saved = [s.freeze for s in surfaces]
+    for s in surfaces:
+        s.freeze = False
+    try:
+        yield
+    finally:
+        for s, f in zip(surfaces, saved):
+            s.freeze = f
+
+
+class WideLeaves:
+    """Wide stand-ins for width-1 differentiable values (a surface's
+    parameters) in a backward pass over many lanes. Dr.Jit reduces the
+    gradient of each width-1 value that wide lanes depend on in its own
+    kernel, which computes the lanes' adjoints again; through these leaves
+    (:meth:`wide`: a detached copy of the value per lane, with a gradient)
+    the adjoints of all of them are evaluated in one kernel, then summed
+    and handed on to the values (:meth:`backpropagate`)."""
+
+    def __init__(self, width):
+        self.width = width
+        self.pairs = []
+
+    def wide(self, value):
+        """A wide leaf standing for ``value`` (``value`` itself where it has
+        no gradient)."""
+        if not dr.grad_enabled(value):
+            return value
+        leaf = dr.detach(value) + dr.zeros(type(dr.detach(value)), self.width)
+        dr.enable_grad(leaf)
+        self.pairs.append((leaf, value))
+        return leaf
+
+    def backpropagate(self):
+        """After a backward pass into the leaves: their gradients, summed
+        over the lanes, into the values they stand for (and on to what those
+        depend on)."""
+        if not self.pairs:
+            return
+        grads = [dr.grad(leaf) for leaf, _ in self.pairs]
+        dr.eval(grads)
+        total = sum(dr.detach(dr.sum(g)) * value for g, (_, value) in zip(grads, self.pairs))
+        dr.backward_from(total)
+        self.pairs = []
 
 
 def ray_intersect_preliminary(scene: mi.Scene, ray: mi.Ray3f, active=True,

@@ -12,75 +12,105 @@ from .common import (Hit, compute_interaction, mis_weight, pdf_emitter_direction
                      skip_area_emitters)
 
 
-#: How many of a path's lgsurface vertices the primal pass hands the replay
-#: (their distance and surface: the replay does not search for them again)
-RECORDED_HITS = 4
+class PathRecord:
+    """What lg_prb's primal pass records of each path for the replay, so
+    that the replay traces again only what the record does not hold: which
+    of the first 32 vertices' emitter samples were unoccluded (``lit``, bit
+    i: vertex i), which of those vertices lie on an lgsurface (``on_lg``;
+    the camera's hit, vertex 0, is searched again: it is cheap), and the
+    surface and distance of the first ``slots`` of those (``ids``, 8 bits a
+    surface: scene index + 1; ``ts``), with ``count`` the lgsurface vertices
+    so far. Its size is fixed (at most 8 slots), not the path's length.
 
+    The state is a tuple (lit, on_lg, ids, ts, count) that the loop
+    carries. Where the integrator's max_depth bounds every path within the
+    record (``complete``), the replay holds no shadow test and no lgsurface
+    search at all."""
 
-def _new_record():
-    """The primal pass's record of a path, empty: (lit, on_lg, ids, ts,
-    count). Bit i of ``lit``: the emitter sample of vertex i (i < 32) is
-    unoccluded; bit i of ``on_lg``: vertex i (the camera's hit 0 not
-    recorded) lies on an lgsurface; the first :data:`RECORDED_HITS` of
-    those vertices' surfaces (8 bits each in ``ids``: scene index + 1) and
-    distances (``ts``); ``count``: the lgsurface vertices so far. Its size
-    does not depend on the path's length."""
-    return mi.UInt32(0), mi.UInt32(0), mi.UInt32(0), mi.Vector4f(dr.inf), mi.UInt32(0)
+    MAX_SLOTS = 8
 
+    def __init__(self, max_depth, n_lgsurfaces):
+        bounded = 0 < max_depth <= 32
+        # vertices 1 .. max_depth - 1 may lie on lgsurfaces
+        self.slots = min(max_depth - 1, self.MAX_SLOTS) if bounded else 4
+        self.slots = max(self.slots, 1)
+        self.keep_hits = n_lgsurfaces < 256
+        self.all_lit = bounded
+        self.complete = bounded and self.keep_hits and max_depth - 1 <= self.slots
 
-def _bit(vertex):
-    """Vertex ``vertex``'s bit in a record's masks (none from 32 on)."""
-    return dr.select(vertex < 32, mi.UInt32(1) << dr.minimum(vertex, 31), 0)
+    def new(self):
+        """The empty record."""
+        n_ids = (self.slots + 3) // 4
+        return (mi.UInt32(0), mi.UInt32(0), tuple(mi.UInt32(0) for _ in range(n_ids)),
+                tuple(mi.Float(dr.inf) for _ in range(self.slots)), mi.UInt32(0))
 
+    @staticmethod
+    def resumed(state):
+        """The record handed over by the primal pass, its count restarted."""
+        return (*state[:4], mi.UInt32(0))
 
-def _visibility(scene, ray, active, tested, primal, record, vertex):
-    """The emitter sample's visibility (``active`` where its shadow ray
-    ``ray`` is unoccluded; ``tested`` lanes are known already) and the
-    record: the primal pass tests and records it, the replay takes it from
-    the record (testing only from vertex 32 on)."""
-    lit, *rest = record
-    if primal:
-        active = active & ~ray_test(scene, ray, active & ~tested)
-        return active, (lit | dr.select(active, _bit(vertex), 0), *rest)
-    known = vertex < 32
-    occluded = ray_test(scene, ray, active & ~tested & ~known)
-    return active & dr.select(known, (lit & _bit(vertex)) != 0, ~occluded), record
+    @staticmethod
+    def handed_over(state):
+        """The part of the record the replay needs."""
+        return state[:4]
 
+    @staticmethod
+    def _bit(vertex):
+        """Vertex ``vertex``'s bit in the masks (none from 32 on)."""
+        return dr.select(vertex < 32, mi.UInt32(1) << dr.minimum(vertex, 31), 0)
 
-def _record(record, vertex, hit, keep_hits=True):
-    """``record`` with ``hit`` (vertex ``vertex``) added where it is on an
-    lgsurface (:func:`_new_record`); ``keep_hits``: keep the first hits'
-    distances and surfaces too (not where the scene has more lgsurfaces
-    than 8 bits can name)."""
-    lit, on_lg, ids, ts, count = record
-    on = (vertex < 32) & (hit.lg != 0)
-    on_lg = on_lg | dr.select(on, _bit(vertex), 0)
-    if keep_hits:
-        for j in range(RECORDED_HITS):
-            ts[j] = dr.select(on & (count == j), hit.t, ts[j])
-        ids = ids | dr.select(on & (count < RECORDED_HITS),
-                              hit.lg << (8 * dr.minimum(count, RECORDED_HITS - 1)), 0)
-    return lit, on_lg, ids, ts, count + dr.select(on, 1, 0)
+    def visibility(self, scene, ray, active, tested, primal, state, vertex):
+        """The emitter sample's visibility (``active`` where its shadow ray
+        ``ray`` is unoccluded; ``tested`` lanes are known already) and the
+        record: the primal pass tests and records it, the replay takes it
+        from the record (testing only from vertex 32 on)."""
+        lit, *rest = state
+        if primal:
+            active = active & ~ray_test(scene, ray, active & ~tested)
+            return active, (lit | dr.select(active, self._bit(vertex), 0), *rest)
+        recorded = (lit & self._bit(vertex)) != 0
+        if self.all_lit:
+            return active & recorded, state
+        known = vertex < 32
+        occluded = ray_test(scene, ray, active & ~tested & ~known)
+        return active & dr.select(known, recorded, ~occluded), state
 
+    def add(self, state, vertex, hit):
+        """The primal pass: the record with ``hit`` (vertex ``vertex``)
+        added where it is on an lgsurface."""
+        lit, on_lg, ids, ts, count = state
+        on = (vertex < 32) & (hit.lg != 0)
+        on_lg = on_lg | dr.select(on, self._bit(vertex), 0)
+        if self.keep_hits:
+            ts = tuple(dr.select(on & (count == j), hit.t, t) for j, t in enumerate(ts))
+            ids = tuple(v | dr.select(on & (count >= 4 * i) & (count < min(4 * i + 4, self.slots)),
+                                      hit.lg << (8 * ((count - 4 * i) & 3)), 0)
+                        for i, v in enumerate(ids))
+        return lit, on_lg, ids, ts, count + dr.select(on, 1, 0)
 
-def _replayed_hit(scene, ray, active, record, vertex, keep_hits=True):
-    """The replay's hit along ``ray`` (vertex ``vertex``: the primal pass's
-    hit there, the same ray) and ``record`` with its count advanced: taken
-    from the record where it holds it, searched among the native shapes
-    only where the primal pass found no lgsurface, searched fully beyond
-    the recorded vertices."""
-    lit, on_lg, ids, ts, count = record
-    on = (on_lg & _bit(vertex)) != 0
-    kept = on & (count < RECORDED_HITS) if keep_hits else mi.Bool(False)
-    hit = ray_intersect_preliminary(scene, ray, active & ~kept, on | (vertex >= 32))
-    if keep_hits:
-        t = ts[0]
-        for j in range(1, RECORDED_HITS):
+    def replayed_hit(self, scene, ray, active, state, vertex):
+        """The replay's hit along ``ray`` (vertex ``vertex``: the primal
+        pass's hit there, along the same ray) and the record with its count
+        advanced: taken from the record where it holds it, searched among
+        the native shapes only where the primal pass found no lgsurface,
+        searched fully beyond what the record holds."""
+        lit, on_lg, ids, ts, count = state
+        on = (on_lg & self._bit(vertex)) != 0
+        if not self.keep_hits:
+            hit = ray_intersect_preliminary(scene, ray, active, on | (vertex >= 32))
+            return hit, state
+        kept = on & (count < self.slots)
+        search = False if self.complete else on | (vertex >= 32)
+        hit = ray_intersect_preliminary(scene, ray, active & ~kept, search)
+        t, word = ts[0], ids[0]
+        for j in range(1, self.slots):
             t = dr.select(count == j, ts[j], t)
-        lg = (ids >> (8 * dr.minimum(count, RECORDED_HITS - 1))) & 0xFF
+        for i in range(1, len(ids)):
+            word = dr.select(count >= 4 * i, ids[i], word)
+        lg = (word >> (8 * (count & 3))) & 0xFF
         hit = Hit(pi=dr.select(kept, dr.zeros(mi.PreliminaryIntersection3f), hit.pi),
                   lg=dr.select(kept, lg, hit.lg), t=dr.select(kept, t, hit.t))
-    return hit, (lit, on_lg, ids, ts, count + dr.select(on, 1, 0))
+        return hit, (lit, on_lg, ids, ts, count + dr.select(on, 1, 0))
 
 
 class LGPRBIntegrator(RBIntegrator):
@@ -121,7 +151,7 @@ class LGPRBIntegrator(RBIntegrator):
     with the same samples that propagates the adjoint radiance vertex by
     vertex, so memory does not grow with the path length). Its primal image
     is ``lg_path``'s: the same samples in the same order. The primal pass
-    also hands the replay a fixed-size record of each path (:func:`_record`:
+    also hands the replay a fixed-size record of each path (:class:`PathRecord`:
     which of its first 32 emitter samples were unoccluded, which vertices
     lie on lgsurfaces and the first four of those hits), so that the replay
     repeats no shadow test and no lgsurface search there.
@@ -211,7 +241,7 @@ class LGPRBIntegrator(RBIntegrator):
             sensor = scene.sensors()[sensor]
         film = sensor.film()
         lgs = common.lg_shapes(scene)
-        with dr.suspend_grad():
+        with dr.suspend_grad(), common.traced_searches(scene):
             sampler, spp = self.prepare(sensor, mi.sample_tea_32(seed, 0x51)[0], spp,
                                         self.aov_names())
             ray, weight, pos = self.sample_rays(scene, sensor, sampler)
@@ -223,10 +253,11 @@ class LGPRBIntegrator(RBIntegrator):
             w = mi.Float(0)
             t_exit = mi.Float(dr.inf)
             band = mi.Bool(False)
+            leaves = common.WideLeaves(dr.width(ray)) if mode == dr.ADMode.Backward else None
             for k in moving:
                 mine = hit.lg == k + 1
                 with dr.resume_grad():
-                    S_k, w_k, te_k, band_k = lgs[k].silhouette(ray, hit.t, width, mine)
+                    S_k, w_k, te_k, band_k = lgs[k].silhouette(ray, hit.t, width, mine, leaves)
                     S = dr.select(mine, S_k, S)
                 w, t_exit, band = (dr.select(mine, v, u) for v, u in
                                    ((w_k, w), (te_k, t_exit), (band_k, band)))
@@ -235,6 +266,9 @@ class LGPRBIntegrator(RBIntegrator):
             behind.o = mi.Point3f(ray(t_exit))
             L_b = self.sample(dr.ADMode.Primal, scene, sampler, behind, None, None, band)[0]
             jump = dr.select(band, (L_s - L_b) * weight * w, 0.0)
+            # (evaluated once: the term's gradients would each launch the
+            # paths again)
+            dr.eval(jump)
             block = film.create_block()
             block.set_coalesce(block.coalesce() and spp >= 4)
             with dr.resume_grad():
@@ -253,6 +287,7 @@ class LGPRBIntegrator(RBIntegrator):
                     δL = dr.grad(one)
                     film.clear()
                     dr.backward_from(δL * term)
+                    leaves.backpropagate()
                     dr.eval()
                     return None
                 δ = dr.forward_to(term)
@@ -271,7 +306,8 @@ class LGPRBIntegrator(RBIntegrator):
                δL, state_in, active: mi.Bool, **kwargs):
         """One pass of path replay (``mode``: primal, backward or forward;
         see ``ADIntegrator.sample``). The primal pass returns the radiance
-        and, as its state, (radiance, the path's record: :func:`_new_record`);
+        and, as its state, (radiance, the path's record: :class:`PathRecord`,
+        the camera ray and its first hit);
         the others replay the same path, subtracting each vertex's
         contribution from the primal radiance in ``state_in`` to know what
         the rest of the path brings, taking the record's hits and
@@ -284,21 +320,25 @@ class LGPRBIntegrator(RBIntegrator):
         ray = mi.Ray3f(dr.detach(ray))
         depth = mi.UInt32(0)                                 # Vertex depth
         L = mi.Spectrum(0 if primal else state_in[0])        # Radiance (left to replay)
-        # The primal pass's record of the path's lgsurface hits (_record):
-        # the replay takes them from it instead of searching again
-        record = _new_record() if primal else (*state_in[1], mi.UInt32(0))
-        keep_hits = len(common.lg_shapes(scene)) < 256
+        # The primal pass's record of the path (PathRecord): the replay
+        # takes its hits and shadow tests from it instead of tracing again
+        rec = PathRecord(self.max_depth, len(common.lg_shapes(scene)))
+        record = rec.new() if primal else rec.resumed(state_in[1])
         vertex = mi.UInt32(0)                                # Vertex index
         δL = mi.Spectrum(δL if δL is not None else 0)        # Adjoint radiance
         β = mi.Spectrum(1)                                   # Path throughput
         η = mi.Float(1)                                      # Relative IOR
         active = mi.Bool(active)
         valid_ray = mi.Bool(not self.hide_emitters and scene.environment() is not None)
-        # (the camera rays' search, outside the loop, runs frozen and fast;
-        # taken from the record it would wait for the primal pass)
-        hit = ray_intersect_preliminary(scene, ray, active)
-        if dr.hint(self.hide_emitters, mode="scalar"):
-            ray, hit = skip_area_emitters(scene, ray, hit, active)
+        # The camera ray's hit (past the emitters it hides): the primal pass
+        # hands it to the replay with the record
+        if dr.hint(primal, mode="scalar"):
+            hit = ray_intersect_preliminary(scene, ray, active)
+            if dr.hint(self.hide_emitters, mode="scalar"):
+                ray, hit = skip_area_emitters(scene, ray, hit, active)
+        else:
+            ray, hit = mi.Ray3f(state_in[2]), state_in[3]
+        first = (mi.Ray3f(ray), hit)
 
         ray_prev = mi.Ray3f(ray)                             # The previous vertex:
         hit_prev = Hit(pi=dr.zeros(mi.PreliminaryIntersection3f), lg=mi.UInt32(0),
@@ -340,8 +380,8 @@ class LGPRBIntegrator(RBIntegrator):
             ds, em_weight, tested = sample_emitter_direction(scene, si, sampler.next_2d(),
                                                              active_em)
             active_em &= ds.pdf != 0
-            active_em, record = _visibility(scene, si.spawn_ray_to(ds.p), active_em, tested,
-                                            primal, record, vertex)
+            active_em, record = rec.visibility(scene, si.spawn_ray_to(ds.p), active_em, tested,
+                                               primal, record, vertex)
             with dr.resume_grad(when=not primal):
                 if dr.hint(not primal, mode="scalar"):
                     ds, em_weight = self._attach_emitter_sample(scene, si, ds, em_weight,
@@ -376,10 +416,10 @@ class LGPRBIntegrator(RBIntegrator):
             vertex += 1
             if dr.hint(primal, mode="scalar"):
                 hit_next = ray_intersect_preliminary(scene, ray_next, active_next)
-                record = _record(record, vertex, hit_next, keep_hits)
+                record = rec.add(record, vertex, hit_next)
             else:
-                hit_next, record = _replayed_hit(scene, ray_next, active_next, record, vertex,
-                                                 keep_hits)
+                hit_next, record = rec.replayed_hit(scene, ray_next, active_next, record,
+                                                    vertex)
 
             # -------------- Differential phase: this vertex --------------
             if dr.hint(not primal, mode="scalar"):
@@ -394,7 +434,7 @@ class LGPRBIntegrator(RBIntegrator):
             ray, hit = ray_next, hit_next
             active = active_next
 
-        return (L if primal else δL, valid_ray, [], (L, record[:4]))
+        return (L if primal else δL, valid_ray, [], (L, rec.handed_over(record), *first))
 
     def _attach_emitter_sample(self, scene, si, ds, em_weight, active, moves):
         """The emitter sample's direction and weight as functions of the

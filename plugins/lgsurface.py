@@ -427,12 +427,12 @@ class LGSurface(mi.Mesh):
         si.shape = dr.select(active, self._shape_ptr(), dr.zeros(mi.ShapePtr))
         si.prim_index = mi.UInt32(0)
         if self.gradient_keys():                 # (none while gradients are suspended)
-            self._attach(ray, si, ok)
+            self._attach(ray, si, ok, grad)
         return dr.select(active, si, dr.zeros(mi.SurfaceInteraction3f))
 
     # ---- Derivatives with respect to the scene parameters -------------------
 
-    def _attach(self, ray, si, uv_ok):
+    def _attach(self, ray, si, uv_ok, grad0):
         """Attach the hit to the parameters that have gradients (in place):
         the search is not differentiated; t, p, n, uv and the tangents get
         the derivatives of the implicit-function theorem. With F(t, theta) =
@@ -444,7 +444,9 @@ class LGSurface(mi.Mesh):
         derivatives are new. Lanes without a hit, or where a derivative is
         undefined (grad f . d = 0, grad f = 0, uv at a pole: ``uv_ok``),
         keep the detached values there, and every input of the derivatives
-        is finite (a NaN partial times a zero adjoint would still be NaN)."""
+        is finite (a NaN partial times a zero adjoint would still be NaN).
+        ``grad0``: grad f at the hit (its value: the slope dF/dt is a
+        constant of the derivatives)."""
         f, grad_f, bound = self._ad_forms()
         m = DrJitMath(mi.Float, bound=bound)
         W = mi.Matrix4f(self._to_world.matrix)
@@ -457,8 +459,7 @@ class LGSurface(mi.Mesh):
         t0 = dr.select(ok, t0, 0.0)
         q0 = o_obj + t0 * d_obj
         F = evaluate(f, _point_env(q0), m)
-        g0 = mi.Vector3f(evaluate(grad_f, _point_env(q0), m))
-        slope = dr.detach(dr.dot(g0, d_obj))
+        slope = dr.detach(dr.dot(mi.Vector3f(grad0), d_obj))
         ok &= dr.isfinite(slope) & (slope != 0)
         t = t0 - (F - dr.detach(F)) / dr.select(ok, slope, 1.0)
         p = o + t * d
@@ -487,7 +488,7 @@ class LGSurface(mi.Mesh):
         si.initialize_sh_frame()
         si.wi = si.to_local(-dr.normalize(ray.d))
 
-    def silhouette(self, ray: mi.Ray3f, t_hit, width, active=True):
+    def silhouette(self, ray: mi.Ray3f, t_hit, width, active=True, leaves=None):
         """The relaxed silhouette of this surface for rays that hit it at
         ``t_hit``: (S, w, t_exit, band). S is the signed distance proxy of
         the ray to the surface's silhouette, min over the ray's chord through
@@ -499,7 +500,10 @@ class LGSurface(mi.Mesh):
         ``t_exit`` where the ray leaves the solid (the
         background behind a grazing hit starts there); ``band`` the lanes
         with w > 0. A grazing hit's chord is found with the guaranteed search
-        (the exit), its minimiser by bisection of dF/dt on it."""
+        (the exit), its minimiser by bisection of dF/dt on it. ``leaves``
+        (a :class:`.common.WideLeaves`): S is attached to wide copies of the
+        parameters' values, for a backward pass that reduces their gradients
+        in one kernel."""
         active = mi.Bool(active) & dr.isfinite(t_hit)
         o, d = dr.detach(mi.Vector3f(ray.o)), dr.detach(mi.Vector3f(ray.d))
         # the exit: the next root after the hit
@@ -540,10 +544,17 @@ class LGSurface(mi.Mesh):
         g_world = dr.select(ok, g_world, 1.0)
         S0 = mi.Float(self.surface.value(q_star)) / g_world
         S = S0
+        if not dr.flag(dr.JitFlag.SymbolicScope):
+            # (evaluated with the caller's next kernel: the derivatives'
+            # kernels then do not search for the chord again)
+            dr.schedule(p_star, g_world, ok, S0)
         if self.gradient_keys():
             f, _, bound = self._ad_forms()
-            m = DrJitMath(mi.Float, bound=bound)
             Wa_inv = dr.rcp(mi.Matrix4f(self._to_world.matrix))
+            if leaves is not None:
+                bound = {k: leaves.wide(v) for k, v in bound.items()}
+                Wa_inv = [[leaves.wide(Wa_inv[i][j]) for j in range(4)] for i in range(3)]
+            m = DrJitMath(mi.Float, bound=bound)
             q_a = _affine(Wa_inv, mi.Vector3f(p_star))
             S_a = evaluate(f, _point_env(q_a), m) / g_world
             S = dr.replace_grad(S0, dr.select(ok, S_a, 0.0))

@@ -373,18 +373,21 @@ def test14_blend_threshold(tmp_path):
     assert abs(g - fd) <= 4 * (fd_se ** 2 + g_se ** 2) ** 0.5, (g, g_se, fd, fd_se)
 
 
-def test15_long_paths_inside_an_emitting_sphere():
+@pytest.mark.parametrize("D", [6, 12, 40])
+def test15_long_paths_inside_an_emitting_sphere(D):
     # Oracle: the furnace in closed form. Seen from inside, a sphere that
     # emits Le and reflects rho (diffuse) everywhere: every vertex of every
     # path lies on it, and a path of max_depth D brings Le sum_{k<D} rho^k
     # whatever its directions, so the image is that and its derivative in
-    # rho is Le sum_k k rho^(k-1). D = 40 and no Russian roulette: the replay
-    # goes past the vertices the primal pass records (32, and the first 4
-    # lgsurface hits); another lgsurface before it in the scene, never hit,
-    # makes the sphere's index 2. Each pixel's estimate is noisy only
-    # through the emitter sampling's MIS (BSDF and cone samples of the same
-    # uniform emission): the mean over pixels within 4 standard errors.
-    D, rho, Le = 40, 0.8, 1.0
+    # rho is Le sum_k k rho^(k-1). No Russian roulette. The three depths
+    # cover the replay's three regimes (lg_prb.PathRecord): D = 6, the
+    # record holds every hit and shadow test; D = 12, the replay searches
+    # after the 8 hits it holds; D = 40, it also tests shadows after vertex
+    # 32. Another lgsurface before the sphere in the scene, never hit, makes
+    # the sphere's index 2. Each pixel's estimate is noisy only through the
+    # emitter sampling's MIS (BSDF and cone samples of the same uniform
+    # emission): the mean over pixels within 4 standard errors.
+    rho, Le = 0.8, 1.0
     scene = mi.load_dict({
         "type": "scene",
         "integrator": {"type": "lg_prb", "max_depth": D, "rr_depth": 1000},
@@ -403,3 +406,21 @@ def test15_long_paths_inside_an_emitting_sphere():
         se = got.std() / np.sqrt(got.size)
         assert abs(got.mean() - expected) <= 4 * se + ROUND * U * expected, \
             (got.mean(), se, expected)
+
+
+def test16_hidden_emitters():
+    # Oracle: the image's linearity in the floor's albedo rho (direct light
+    # only, max_depth 2): dI / drho = I / rho, at the gradient seed, with an
+    # emitting lgsurface hidden from the camera (hide_emitters: the camera
+    # rays that hit it continue to the floor behind, in the primal pass and,
+    # handed over by it, in the replay).
+    from lgshape.bench.speed import emitter_scene
+    lamp = {"type": "lgsurface", "surface": "sphere", "radius": 0.3,
+            "to_world": mi.ScalarTransform4f().translate([0, 0.4, 0])}
+
+    def make(integrator):
+        return emitter_scene(lamp, integrator, res=16, spp=16, max_depth=2, hide_emitters=True)
+    g = ad_forward(make("lg_prb"), "floor.bsdf.reflectance.value")
+    expected = render(make("lg_path"), SEED_GRAD) / 0.6
+    assert expected.max() > 0
+    assert np.abs(g - expected).max() <= ROUND * U * np.abs(expected).max() * 4
