@@ -137,6 +137,11 @@ class LGPRBIntegrator(RBIntegrator):
        - Add the boundary term of the lgsurfaces' primary silhouettes (the
          visibility gradient of moving silhouettes seen by the camera).
          (Default: |true|)
+     * - shadow_edges
+       - |bool|
+       - Add the boundary term of the shadows that moving lgsurfaces cast
+         on the emitter samples (at every vertex; needs ``boundary``).
+         (Default: |true|)
      * - band_width
        - |float|
        - Width, in pixels, of the band inside each silhouette over which
@@ -153,7 +158,7 @@ class LGPRBIntegrator(RBIntegrator):
     is ``lg_path``'s: the same samples in the same order. The primal pass
     also hands the replay a fixed-size record of each path (:class:`PathRecord`:
     which of its first 32 emitter samples were unoccluded, which vertices
-    lie on lgsurfaces and the first four of those hits), so that the replay
+    lie on lgsurfaces and up to eight of those hits), so that the replay
     repeats no shadow test and no lgsurface search there.
 
     It differentiates Mitsuba's plugins as ``prb`` does (BSDFs, textures,
@@ -164,9 +169,13 @@ class LGPRBIntegrator(RBIntegrator):
     so shading, normals, emitter terms and the next bounce carry the
     derivatives. The primary silhouettes of moving lgsurfaces add their
     boundary term (:meth:`_silhouettes`: relaxed over a band of
-    ``band_width`` pixels, sampled by a second set of camera rays); the
-    boundary terms of shadow edges, of silhouettes seen after a bounce and
-    of native shapes are left out (as ``prb`` leaves them out).
+    ``band_width`` pixels, sampled by a second set of camera rays), and so
+    do the shadow edges they cast on the emitter samples, at every vertex
+    (:meth:`_shadow_edge`: the same relaxation, over ``band_width`` pixels'
+    angle at the occluder). Left out: silhouettes seen after a bounce (the
+    moving lgsurface in front of other surfaces, lit or not, in indirect
+    light), edges of shadows on lgsurfaces' own emitters' cone samples, and
+    native shapes' boundaries (``prb`` leaves all boundaries out).
     Participating media are ignored (and a scene with some warns).
 
     .. tabs::
@@ -191,7 +200,9 @@ class LGPRBIntegrator(RBIntegrator):
         super().__init__(props)
         common.read_depths(self, props)
         self.boundary = bool(props.get("boundary", True))
+        self.shadow_edges = bool(props.get("shadow_edges", True))
         self.band_width = float(props.get("band_width", 1.0))
+        self._band_angle = 0.0
         if not self.band_width > 0:
             raise ValueError("lg_prb: 'band_width' must be > 0 (pixels)")
 
@@ -204,6 +215,7 @@ class LGPRBIntegrator(RBIntegrator):
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
+        self._band_angle = self._pixel_angle(scene, sensor)
         grad = super().render_forward(scene, params, sensor, seed, spp)
         moving = self._moving(scene) if self.boundary else []
         if moving:
@@ -212,12 +224,23 @@ class LGPRBIntegrator(RBIntegrator):
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
+        self._band_angle = self._pixel_angle(scene, sensor)
         super().render_backward(scene, params, grad_in, sensor, seed, spp)
         moving = self._moving(scene) if self.boundary else []
         if moving:
             self._silhouettes(dr.ADMode.Backward, scene, moving, sensor, seed, spp, grad_in)
 
     # ---- Visibility: the primary silhouettes of lgsurfaces ----------------
+
+    @staticmethod
+    def _pixel_angle(scene, sensor):
+        """The angle between neighbouring pixels' rays at the film's
+        centre (the shadow edges' band: ``band_width`` of them)."""
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        with dr.suspend_grad():
+            ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(0.5), mi.Point2f(0.5))
+            return float(dr.norm(mi.Vector3f(ray.d_x) - mi.Vector3f(ray.d))[0])
 
     @staticmethod
     def _moving(scene):
@@ -340,6 +363,13 @@ class LGPRBIntegrator(RBIntegrator):
             ray, hit = mi.Ray3f(state_in[2]), state_in[3]
         first = (mi.Ray3f(ray), hit)
 
+        # The shadow edges of moving lgsurfaces (_shadow_edge), replayed
+        # (which move is known where gradients are not suspended)
+        moving = []
+        if dr.hint(not primal and self.boundary and self.shadow_edges, mode="scalar"):
+            with dr.resume_grad():
+                moving = self._moving(scene)
+
         ray_prev = mi.Ray3f(ray)                             # The previous vertex:
         hit_prev = Hit(pi=dr.zeros(mi.PreliminaryIntersection3f), lg=mi.UInt32(0),
                        t=mi.Float(dr.inf))                  # its hit,
@@ -380,6 +410,7 @@ class LGPRBIntegrator(RBIntegrator):
             ds, em_weight, tested = sample_emitter_direction(scene, si, sampler.next_2d(),
                                                              active_em)
             active_em &= ds.pdf != 0
+            sampled = mi.Bool(active_em)
             active_em, record = rec.visibility(scene, si.spawn_ray_to(ds.p), active_em, tested,
                                                primal, record, vertex)
             with dr.resume_grad(when=not primal):
@@ -391,9 +422,19 @@ class LGPRBIntegrator(RBIntegrator):
             # ------ Evaluate BSDF * cos(theta) and sample a direction ------
             sample_1, sample_2 = sampler.next_1d(), sampler.next_2d()
             with dr.resume_grad(when=not primal):
-                bsdf_val, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
+                bsdf_val, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo,
+                                                   sampled if moving else active_em)
                 mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
                 Lr_dir = dr.select(active_em, β * mis_em * bsdf_val * em_weight, 0.0)
+                if dr.hint(bool(moving), mode="scalar"):
+                    # the shadowed samples near a moving lgsurface's edge: what
+                    # they would bring unoccluded (all of it: the boundary
+                    # term has no BSDF-sampled counterpart here), times the
+                    # band's weight, moving with the edge's distance S
+                    w_e, S_e = self._shadow_edge(scene, si, ds,
+                                                 sampled & ~active_em & ~tested, moving)
+                    Lr_dir = Lr_dir + dr.detach(β * bsdf_val * em_weight * w_e) * \
+                        (S_e - dr.detach(S_e))
             bs, bsdf_weight = bsdf.sample(bsdf_ctx, si, sample_1, sample_2, active_next)
 
             # ---------------------- BSDF sampling ----------------------
@@ -435,6 +476,37 @@ class LGPRBIntegrator(RBIntegrator):
             active = active_next
 
         return (L if primal else δL, valid_ray, [], (L, rec.handed_over(record), *first))
+
+    def _shadow_edge(self, scene, si, ds, shadowed, moving):
+        """The shadow edges' boundary term at a vertex, for its emitter
+        samples that an lgsurface in ``moving`` (scene indices) occludes:
+        (w, S). Along the shadow ray, the occluder's S (its silhouette's
+        distance proxy, :meth:`LGSurface.silhouette`, attached to its
+        parameters) and the band's weight w (``band_width`` pixels' angle at
+        the occluder's distance; 0 where the ray is deep in the solid, or
+        something else occludes it behind the occluder's exit). The sample's
+        visibility V = [S > 0] moves by delta(S) dS, relaxed to w dS; S
+        follows the occluder's parameters and the motion of the shading
+        point and the light sample."""
+        lgs = common.lg_shapes(scene)
+        moving_ray = si.spawn_ray_to(ds.p)          # (attached where its ends move)
+        ray = dr.detach(moving_ray)
+        hit = ray_intersect_preliminary(scene, ray, shadowed)
+        width = self.band_width * self._band_angle * hit.t * dr.norm(ray.d)
+        w, S = mi.Float(0), mi.Float(0)
+        for k in moving:
+            mine = shadowed & (hit.lg == k + 1)
+            with dr.resume_grad():
+                S_k, w_k, t_exit, band = lgs[k].silhouette(ray, hit.t, width, mine,
+                                                           moving_ray=moving_ray)
+                S = dr.select(mine, S_k, S)
+            band &= t_exit < ray.maxt
+            behind = mi.Ray3f(ray)
+            behind.o = mi.Point3f(ray(t_exit))
+            behind.maxt = ray.maxt - t_exit
+            band &= ~ray_test(scene, behind, band)
+            w = dr.select(mine & band, w_k, w)
+        return w, S
 
     def _attach_emitter_sample(self, scene, si, ds, em_weight, active, moves):
         """The emitter sample's direction and weight as functions of the

@@ -488,7 +488,7 @@ class LGSurface(mi.Mesh):
         si.initialize_sh_frame()
         si.wi = si.to_local(-dr.normalize(ray.d))
 
-    def silhouette(self, ray: mi.Ray3f, t_hit, width, active=True, leaves=None):
+    def silhouette(self, ray: mi.Ray3f, t_hit, width, active=True, leaves=None, moving_ray=None):
         """The relaxed silhouette of this surface for rays that hit it at
         ``t_hit``: (S, w, t_exit, band). S is the signed distance proxy of
         the ray to the surface's silhouette, min over the ray's chord through
@@ -503,7 +503,10 @@ class LGSurface(mi.Mesh):
         (the exit), its minimiser by bisection of dF/dt on it. ``leaves``
         (a :class:`.common.WideLeaves`): S is attached to wide copies of the
         parameters' values, for a backward pass that reduces their gradients
-        in one kernel."""
+        in one kernel. ``moving_ray``: ``ray`` attached to what moves its
+        ends (a shadow ray's shading point and light sample): S follows them
+        too, at the chord's minimiser's fixed position along the ray (the
+        envelope theorem again); ``ray`` itself must then be detached."""
         active = mi.Bool(active) & dr.isfinite(t_hit)
         o, d = dr.detach(mi.Vector3f(ray.o)), dr.detach(mi.Vector3f(ray.d))
         # the exit: the next root after the hit
@@ -555,6 +558,8 @@ class LGSurface(mi.Mesh):
                 bound = {k: leaves.wide(v) for k, v in bound.items()}
                 Wa_inv = [[leaves.wide(Wa_inv[i][j]) for j in range(4)] for i in range(3)]
             m = DrJitMath(mi.Float, bound=bound)
+            if moving_ray is not None:
+                p_star = mi.Vector3f(moving_ray.o) + t_star * mi.Vector3f(moving_ray.d)
             q_a = _affine(Wa_inv, mi.Vector3f(p_star))
             S_a = evaluate(f, _point_env(q_a), m) / g_world
             S = dr.replace_grad(S0, dr.select(ok, S_a, 0.0))
