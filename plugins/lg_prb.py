@@ -202,7 +202,7 @@ class LGPRBIntegrator(RBIntegrator):
         self.boundary = bool(props.get("boundary", True))
         self.shadow_edges = bool(props.get("shadow_edges", True))
         self.band_width = float(props.get("band_width", 1.0))
-        self._band_angle = 0.0
+        self._pixel = (0.0, 0.0)            # (angle, footprint): _pixel_spread
         if not self.band_width > 0:
             raise ValueError("lg_prb: 'band_width' must be > 0 (pixels)")
 
@@ -215,7 +215,7 @@ class LGPRBIntegrator(RBIntegrator):
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
-        self._band_angle = self._pixel_angle(scene, sensor)
+        self._pixel = self._pixel_spread(scene, sensor)
         grad = super().render_forward(scene, params, sensor, seed, spp)
         moving = self._moving(scene) if self.boundary else []
         if moving:
@@ -224,7 +224,7 @@ class LGPRBIntegrator(RBIntegrator):
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
-        self._band_angle = self._pixel_angle(scene, sensor)
+        self._pixel = self._pixel_spread(scene, sensor)
         super().render_backward(scene, params, grad_in, sensor, seed, spp)
         moving = self._moving(scene) if self.boundary else []
         if moving:
@@ -233,14 +233,17 @@ class LGPRBIntegrator(RBIntegrator):
     # ---- Visibility: the primary silhouettes of lgsurfaces ----------------
 
     @staticmethod
-    def _pixel_angle(scene, sensor):
-        """The angle between neighbouring pixels' rays at the film's
-        centre (the shadow edges' band: ``band_width`` of them)."""
+    def _pixel_spread(scene, sensor):
+        """How neighbouring pixels' rays spread at the film's centre: (the
+        angle between them, the distance between their origins: 0 and the
+        pixel's size for a perspective and an orthographic camera). The
+        shadow edges' band is ``band_width`` pixels of it at the occluder."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
         with dr.suspend_grad():
             ray, _ = sensor.sample_ray_differential(0.0, 0.5, mi.Point2f(0.5), mi.Point2f(0.5))
-            return float(dr.norm(mi.Vector3f(ray.d_x) - mi.Vector3f(ray.d))[0])
+            return (float(dr.norm(mi.Vector3f(ray.d_x) - mi.Vector3f(ray.d))[0]),
+                    float(dr.norm(mi.Vector3f(ray.o_x) - mi.Vector3f(ray.o))[0]))
 
     @staticmethod
     def _moving(scene):
@@ -270,8 +273,10 @@ class LGPRBIntegrator(RBIntegrator):
             ray, weight, pos = self.sample_rays(scene, sensor, sampler)
             hit = ray_intersect_preliminary(scene, ray)
             # the band's width: band_width pixels at the hit's distance
+            # (the rays' angle at the distance, and their origins' spread)
             step = dr.norm(mi.Vector3f(ray.d_x) - mi.Vector3f(ray.d))
-            width = self.band_width * dr.detach(hit.t) * step
+            width = self.band_width * (dr.detach(hit.t) * step +
+                                       dr.norm(mi.Vector3f(ray.o_x) - mi.Vector3f(ray.o)))
             S = mi.Float(0)
             w = mi.Float(0)
             t_exit = mi.Float(dr.inf)
@@ -492,7 +497,8 @@ class LGPRBIntegrator(RBIntegrator):
         moving_ray = si.spawn_ray_to(ds.p)          # (attached where its ends move)
         ray = dr.detach(moving_ray)
         hit = ray_intersect_preliminary(scene, ray, shadowed)
-        width = self.band_width * self._band_angle * hit.t * dr.norm(ray.d)
+        angle, footprint = self._pixel
+        width = self.band_width * (angle * hit.t * dr.norm(ray.d) + footprint)
         w, S = mi.Float(0), mi.Float(0)
         for k in moving:
             mine = shadowed & (hit.lg == k + 1)

@@ -453,3 +453,27 @@ def test17_shadow_edge_gradient():
     off, _ = mean_gradient(make, "obj.r", seeds=1, shadow_edges=False)
     assert abs(fd) > 10 * fd_se and off == 0.0
     assert abs(g - fd) <= 4 * (fd_se ** 2 + g_se ** 2) ** 0.5, (g, g_se, fd, fd_se)
+
+
+def test18_orthographic_silhouette_is_the_disc_area():
+    # Oracle: as test12 through an orthographic camera that sees a 2s x 2s
+    # window: the mean is 0.2 (1 - pi r^2 / (2s)^2), so d/dr = -0.2 2 pi r /
+    # (2s)^2 in closed form (the band's width comes from the pixels' spread
+    # of origins, not of directions).
+    r, s = 0.6, 1.2
+
+    def black(integrator, v=r, **props):
+        return mi.load_dict({
+            "type": "scene", "integrator": {"type": integrator, "max_depth": 2, **props},
+            "sensor": {"type": "orthographic",
+                       "to_world": mi.ScalarTransform4f().look_at([0, 0, 4], [0, 0, 0], [0, 1, 0])
+                       @ mi.ScalarTransform4f().scale([s, s, 1]),
+                       "film": {"type": "hdrfilm", "width": 32, "height": 32,
+                                "rfilter": {"type": "box"}},
+                       "sampler": {"type": "independent", "sample_count": 64}},
+            "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.2}},
+            "obj": {**ball(v), "bsdf": {"type": "diffuse",
+                                        "reflectance": {"type": "rgb", "value": 0.0}}}})
+    expected = -0.2 * 2 * np.pi * r / (2 * s) ** 2
+    g, g_se = mean_gradient(black, "obj.r")
+    assert abs(g - expected) <= 4 * g_se, (g, g_se, expected)

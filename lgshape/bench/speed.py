@@ -519,11 +519,14 @@ def bench_cornell(cfg: SpeedConfig, log, meshes=None):
 TARGET_GRADIENT = 3.0
 
 
-def _integrator_xml(text, kind):
-    """The scene text with its integrator's type set to ``kind``."""
+def _integrator_xml(text, kind, **booleans):
+    """The scene text with its integrator's type set to ``kind`` (and the
+    boolean properties ``booleans`` added)."""
     root = ET.fromstring(text)
     for integ in root.iter("integrator"):
         integ.set("type", kind)
+        for name, value in booleans.items():
+            ET.SubElement(integ, "boolean", name=name, value=str(bool(value)).lower())
     return ET.tostring(root, encoding="unicode")
 
 
@@ -610,13 +613,18 @@ def bench_gradients(cfg: SpeedConfig, log, meshes=None):
             mitsuba_mesh(v, faces, name).write_ply(path)
             return path
         with open(CORNELL) as fh:
-            lg_text = _integrator_xml(fh.read(), "lg_prb")
+            text = fh.read()
+            lg_text = _integrator_xml(text, "lg_prb")
+            no_edges_text = _integrator_xml(text, "lg_prb", shadow_edges=False)
         mesh_text, _ = mesh_scene_xml(CORNELL, ply_for)
         mesh_text = _integrator_xml(mesh_text, "prb")
         cases = {"lg_prb": (mi.load_string(lg_text, **defines), ["white.reflectance.value"]),
                  "prb": (mi.load_string(mesh_text, **defines), ["white.reflectance.value"]),
                  "lg_prb_shape": (mi.load_string(lg_text, **defines),
-                                  ["white.reflectance.value", "tangle.to_world"])}
+                                  ["white.reflectance.value", "tangle.to_world"]),
+                 "lg_prb_shape_no_shadow_edges": (
+                     mi.load_string(no_edges_text, **defines),
+                     ["white.reflectance.value", "tangle.to_world"])}
         rec["repeats"] = cfg.gradient_rounds
         timed = time_gradients(cases, cfg.render_spp, rec["repeats"])
         for key, (_, keys) in cases.items():
@@ -1048,16 +1056,19 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
         L.append("### Inverse rendering: gradient pass against primal\n")
         L.append(f"`{gr['scene']}` at {gr['res']} x {gr['res']}, {gr['spp']} spp: a primal "
                  "render and a gradient pass (`mi.render` with the parameters differentiable, "
-                 "then `dr.backward` of the image mean), the three cases interleaved round by "
-                 f"round, medians of {gr['repeats']} rounds; `prb` renders the same scene with the tangle as a "
-                 f"marching-cubes mesh ({gr['mesh_res']}^3 samples).\n")
+                 "then `dr.backward` of the image mean), the cases interleaved round by round, "
+                 f"medians of {gr['repeats']} rounds; `prb` renders the same scene with the "
+                 f"tangle as a marching-cubes mesh ({gr['mesh_res']}^3 samples); the last row "
+                 "without lg_prb's shadow-edge term.\n")
         L += _table(("integrator", "parameters", "primal s", "gradient pass s", "ratio",
                      "rounds' ratios"),
-                    [(key.replace("_shape", ""), ", ".join(r["parameters"]),
+                    [(key.split("_shape")[0] + (", shadow_edges false" if "no_shadow" in key
+                                                 else ""), ", ".join(r["parameters"]),
                       f"{r['primal_s']:.3f}", f"{r['gradient_s']:.3f}", f"{r['ratio']:.2f}",
                       (f"{min(r['ratios']):.2f}-{max(r['ratios']):.2f}"
                        if r.get("ratios") else ""))
-                     for key, r in ((k, gr.get(k)) for k in ("lg_prb", "prb", "lg_prb_shape"))
+                     for key, r in ((k, gr.get(k)) for k in ("lg_prb", "prb", "lg_prb_shape",
+                                                          "lg_prb_shape_no_shadow_edges"))
                      if r])
         L.append(f"lg_prb's ratio {gr['lg_prb']['ratio']:.2f} against prb's "
                  f"{gr['prb']['ratio']:.2f} ({'met' if gr['met_anchor'] else 'not met'}: no "
