@@ -245,6 +245,12 @@ class LGPRBIntegrator(RBIntegrator):
             return (float(dr.norm(mi.Vector3f(ray.d_x) - mi.Vector3f(ray.d))[0]),
                     float(dr.norm(mi.Vector3f(ray.o_x) - mi.Vector3f(ray.o))[0]))
 
+    def _band(self, distance, angle, footprint):
+        """A band's width in world units: ``band_width`` pixels at
+        ``distance`` from a camera whose neighbouring pixels' rays part by
+        ``angle`` and start ``footprint`` apart (:meth:`_pixel_spread`)."""
+        return self.band_width * (distance * angle + footprint)
+
     @staticmethod
     def _moving(scene):
         """The lgsurfaces whose parameters have gradients (by scene index)."""
@@ -273,10 +279,9 @@ class LGPRBIntegrator(RBIntegrator):
             ray, weight, pos = self.sample_rays(scene, sensor, sampler)
             hit = ray_intersect_preliminary(scene, ray)
             # the band's width: band_width pixels at the hit's distance
-            # (the rays' angle at the distance, and their origins' spread)
-            step = dr.norm(mi.Vector3f(ray.d_x) - mi.Vector3f(ray.d))
-            width = self.band_width * (dr.detach(hit.t) * step +
-                                       dr.norm(mi.Vector3f(ray.o_x) - mi.Vector3f(ray.o)))
+            width = self._band(dr.detach(hit.t),
+                               dr.norm(mi.Vector3f(ray.d_x) - mi.Vector3f(ray.d)),
+                               dr.norm(mi.Vector3f(ray.o_x) - mi.Vector3f(ray.o)))
             S = mi.Float(0)
             w = mi.Float(0)
             t_exit = mi.Float(dr.inf)
@@ -497,8 +502,7 @@ class LGPRBIntegrator(RBIntegrator):
         moving_ray = si.spawn_ray_to(ds.p)          # (attached where its ends move)
         ray = dr.detach(moving_ray)
         hit = ray_intersect_preliminary(scene, ray, shadowed)
-        angle, footprint = self._pixel
-        width = self.band_width * (angle * hit.t * dr.norm(ray.d) + footprint)
+        width = self._band(hit.t * dr.norm(ray.d), *self._pixel)
         w, S = mi.Float(0), mi.Float(0)
         for k in moving:
             mine = shadowed & (hit.lg == k + 1)
