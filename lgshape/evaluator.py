@@ -241,23 +241,31 @@ class Evaluator:
         if self.tabled:
             F, eF, (g,) = K.tables.point(env, err, rng, m64)
             return F, eF, g, None
+        Float64 = m64.Float
+        # (every value as a Float64: a constant f, or a constant g, is an
+        # opaque scalar with the Python error 0.0, which a branch's state
+        # may not mix with arrays)
         if self.mode == "interval":
             # g's point value only steers Newton: no error bound needed.
-            if where is None:
+            def F_at(s):
                 F, eF = evaluate_with_error(self.f, env, err, m64)
+                return Float64(F), Float64(eF)
+
+            def g_at(s):
+                return Float64(evaluate(self.ge, env, m64))
+            if where is None:
+                F, eF = F_at(s)
             else:
-                F, eF = dr.if_stmt(
-                    args=(s,), cond=where,
-                    true_fn=lambda s: evaluate_with_error(self.f, env, err, m64),
-                    false_fn=lambda s: (m64.Float(0), m64.Float(0)), label="lgshape_point")
+                F, eF = dr.if_stmt(args=(s,), cond=where, true_fn=F_at,
+                                   false_fn=lambda s: (Float64(0), Float64(0)),
+                                   label="lgshape_point")
             if g_where is None:
-                return F, eF, evaluate(self.ge, env, m64), None
-            g = dr.if_stmt(args=(s,), cond=g_where,
-                                true_fn=lambda s: evaluate(self.ge, env, m64),
-                                false_fn=lambda s: m64.Float(0), label="lgshape_slope")
+                return F, eF, g_at(s), None
+            g = dr.if_stmt(args=(s,), cond=g_where, true_fn=g_at,
+                           false_fn=lambda s: Float64(0), label="lgshape_slope")
             return F, eF, g, None
         (F, eF), (g, eg) = evaluate_with_error([self.f, self.ge], env, err, m64)
-        return F, eF, g, eg
+        return Float64(F), Float64(eF), Float64(g), Float64(eg)
 
     def steer(self, s, rng):
         """F and g at s (float64) for Newton's steps, without error bounds:

@@ -46,6 +46,7 @@ import gc
 import math
 import numbers
 import sys
+import warnings
 
 import drjit as dr
 import numpy as np
@@ -57,14 +58,15 @@ from .evaluator import KernelData, table_point
 from .expr import (Expr, evaluate, gradient, hessian, parse, ray_derivatives, raypoly,
                    raytrig)
 from .expr.horner import horner
-from .expr.node import topological
+from .expr.node import constant_value, topological
 from .expr.shift import localize
 from .search import RayResult, empty_result, search
 from .surfaces import Implicit
 from .tables import DeviceTables, TableForm, evaluate_points, find_tables
 
-__all__ = ["DEFAULT_DEPTH", "FREEZE_LIMIT", "SEARCH_MODES", "RayResult", "Surface",
-           "call_frozen", "check_rays", "default_array3f"]
+__all__ = ["DEFAULT_DEPTH", "EmptySurfaceWarning", "FREEZE_LIMIT", "MAX_FUSED_NODES",
+           "MAX_NODES", "SEARCH_MODES", "RayResult", "Surface", "call_frozen", "check_rays",
+           "default_array3f"]
 
 #: How an interval of the ray is bounded: ``"interval"`` (g = dF/dt over the
 #: interval by interval arithmetic, the mean-value form), ``"taylor"`` (the
@@ -83,6 +85,50 @@ HORNER = True
 #: Recordings kept per frozen query (one per ray count and argument layout;
 #: least recently used dropped), see :meth:`Surface.trace`.
 FREEZE_LIMIT = 8
+
+#: The most nodes (shared subexpressions once) of a plain expression: a
+#: larger one is refused (ValueError naming both numbers). The construction's
+#: passes over f (tables, derivatives, coordinates) are linear in its size.
+MAX_NODES = 200_000
+
+#: The most nodes of an expression evaluated whole in the search's kernel
+#: (no table found in it, or ``tables=False``, L, G or another search mode):
+#: a larger one is refused. Dr.Jit's compiler is not linear in a kernel's
+#: size (minutes for tens of thousands of nodes; a chain 10,000 deep
+#: overflows its stack), and the kernel holds f, its ray derivatives and
+#: their interval forms.
+MAX_FUSED_NODES = 20_000
+
+
+class EmptySurfaceWarning(UserWarning):
+    """A Surface whose f has no zero in its box (its pruning grid has no
+    cells: a nonzero constant f, or a surface outside the box): every ray
+    misses. Warned once, when the Surface is built."""
+
+
+def _shown(f, limit: int = 200) -> str:
+    """f as messages quote it: a long expression is cut."""
+    text = repr(f)
+    return text if len(text) <= limit else f"{text[:limit - 40]} ... {text[-30:]}"
+
+
+def _check_size(f, limit, what):
+    n = f.size()
+    if n > limit:
+        name = "MAX_NODES" if limit == MAX_NODES else "MAX_FUSED_NODES"
+        raise ValueError(f"f has {n} nodes, over the limit of {limit} for {what} "
+                         f"(lgshape.trace.{name})")
+
+
+def _check_not_zero(f):
+    """Refuse an f that is 0 everywhere (every point is on the surface, which
+    has no normal): a constant 0 once its named constants take their values.
+    A nonzero constant has no surface: built, and warned of as empty."""
+    if constant_value(f) == 0.0:
+        raise ValueError(f"f = {_shown(f)} is identically 0 (with its named constants' values): "
+                         f"every point of the box would be on the surface; an implicit "
+                         f"surface needs an f that changes sign")
+
 
 def _as_expr(expr):
     if isinstance(expr, Implicit):
@@ -203,7 +249,13 @@ class Surface:
     ``max_iterations``: the per-ray bound on search steps.
 
     An f that is NaN or infinite at every sampled point of the box has no
-    surface anywhere: that is refused with a ValueError.
+    surface anywhere: that is refused with a ValueError; so is an f that is
+    identically 0 (a constant 0 once its named constants take their values:
+    every point would be on it). A nonzero constant f (or any f without a
+    zero in the box) builds with no cells, warns once
+    (:class:`EmptySurfaceWarning`), and every ray misses. A plain expression
+    over :data:`MAX_NODES` nodes, or one evaluated whole in the kernel over
+    :data:`MAX_FUSED_NODES`, is refused with a ValueError naming the limit.
 
     **Tables.** ``expr`` may be a :class:`~lgshape.tables.TableForm` (from
     :mod:`lgshape.primitives`), and a plain expression holding an n-ary min,
@@ -244,6 +296,9 @@ class Surface:
         self.search = search
         if not tables and isinstance(f, TableForm):
             f = f.expr()
+        if not isinstance(f, TableForm):
+            _check_size(f, MAX_NODES, "an expression")
+            _check_not_zero(f)
         # a table found in a plain expression is an optimisation: not with a
         # hand-given L or G or another search mode, which need the fused form
         fused_only = L is not None or G is not None or search != "interval"
@@ -286,6 +341,10 @@ class Surface:
                 # the expression path evaluates f node by node: sums of
                 # powers of one subexpression in Horner form
                 self.local_expr = horner(self.local_expr)
+            _check_size(self.local_expr, MAX_FUSED_NODES,
+                        "an expression evaluated whole in the search's kernel (a sum, min or "
+                        f"max of at least {tablemod.MIN_ROWS} parts of one structure is "
+                        "evaluated per cell instead)")
             self.g_expr, self.h_expr = ray_derivatives(self.local_expr)
             #: f is defined and finite wherever its interval forms are
             #: finite (no division by a variable, sqrt, log or negative
@@ -303,6 +362,11 @@ class Surface:
             self.cell_rows = tablemod.build(self.tables, lo, hi, self.depth)
             self.grid = gridmod.brick_map(lo, hi, self.depth, self.cell_rows.cells,
                                           self.cell_rows.tested)
+        if len(self.grid.cells) == 0:
+            shown = self.tables if self.tables is not None else self.expr
+            warnings.warn(EmptySurfaceWarning(
+                f"f = {_shown(shown)} has no zero in the box {self.bbox} (its pruning grid has "
+                f"no cells): every ray misses"), stacklevel=2)
         self._device = {}
         self._frozen = {}
         #: Run standalone queries as frozen functions (see :meth:`trace`);
@@ -413,7 +477,8 @@ class Surface:
             _, _, g = table_point(K, p, with_gradient=True)
             return type(p)(*(Float(v) for v in g))
         gx, gy, gz = evaluate(list(gradient(self.expr)), {"x": p.x, "y": p.y, "z": p.z}, K.m)
-        return type(p)(gx, gy, gz)
+        zero = dr.zeros(Float, dr.width(p))     # a constant component: one per point
+        return type(p)(gx + zero, gy + zero, gz + zero)
 
     def normal(self, p):
         """The unit normal grad f / |grad f| (towards f > 0)."""
@@ -427,7 +492,9 @@ class Surface:
         K = self._kernel_data(type(p.x))
         if K.tables is not None:
             return type(p.x)(table_point(K, p)[0])
-        return evaluate(self.expr, {"x": p.x, "y": p.y, "z": p.z}, K.m)
+        Float = type(p.x)                        # a constant f: one value per point
+        return Float(evaluate(self.expr, {"x": p.x, "y": p.y, "z": p.z}, K.m)) \
+            + dr.zeros(Float, dr.width(p))
 
     def intersect(self, o, d, t_min=0.0, t_max=math.inf, active=True):
         """Nearest root t in [t_min, t_max] along o + t d: returns (t, hit),

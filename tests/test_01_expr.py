@@ -2,6 +2,9 @@
 
 Oracle: the same function written three ways (a string, Python operators,
 plain numpy code) gives the same float64 values at random points."""
+import math
+import re
+
 import numpy as np
 import pytest
 
@@ -164,3 +167,62 @@ def test30_horner_form(f, smaller, rng):
     v, w = evaluate(e, env), evaluate(h, env)
     assert np.allclose(w, v, rtol=1e-12, atol=1e-12 * np.abs(v).max())
     assert (h.size() < e.size()) if smaller else (h is e)
+
+
+class _Counting:
+    """A compiled pattern whose anchored ``match`` calls are counted, with
+    the characters each one consumed."""
+
+    def __init__(self, pattern):
+        self.pattern, self.calls, self.consumed = pattern, 0, 0
+
+    def match(self, text, pos):
+        m = self.pattern.match(text, pos)
+        self.calls += 1
+        self.consumed += m.end() - pos
+        return m
+
+
+@pytest.mark.timeout(60)           # a hang guard only: the assertions count operations
+@pytest.mark.parametrize("text", ["x^2 + y^2 + z^2 - 1" + " " * 200_000,
+                                  " \t\n" * 50_000 + "x" + "\n" * 100_000 + "- 1" + "\u00a0" * 1000,
+                                  "+".join(f"{k}.5*x^{k % 5}" for k in range(20_000))])
+def test11_tokenizer_reads_each_character_once(text, monkeypatch):
+    """The tokenizer is linear in the text, trailing white space included:
+    two anchored matches per token (its leading white space, then the
+    token), and together they consume every character exactly once. Oracle:
+    the counts (tokens from a plain split of the same text), not a clock."""
+    from lgshape.expr import parser as P
+    space, token = _Counting(P._SPACE), _Counting(P._TOKEN)
+    monkeypatch.setattr(P, "_SPACE", space)
+    monkeypatch.setattr(P, "_TOKEN", token)
+    tokens = P._tokenize(text)
+    assert token.calls == len(tokens) - 1 and space.calls == len(tokens)
+    assert space.consumed + token.consumed == len(text)
+    assert [v for _, v, _ in tokens[:-1]] == [v for v in re.findall(
+        r"\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+|[A-Za-z_]\w*|\*\*|[-+*/^(),]", text)]
+    monkeypatch.undo()
+    parse(text)                     # and the whole text parses
+
+
+def test12_like_terms_fold_exactly():
+    """x + x + ... + x (n terms) is one term n*x, and c1*t + c2*t is
+    (c1 + c2)*t where that sum is exact in float64 (else kept as written,
+    so the real value never changes). Oracle: exact rational arithmetic
+    (fractions.Fraction) on the coefficients."""
+    from fractions import Fraction
+    f = parse("+".join(["x"] * 2001) + "-1")
+    assert f.op == "sub" and f.args[0].op == "mul" and f.args[0].args[0].param == 2001.0
+    e = parse("sin(x) + sin(x) - 3*sin(x)")           # (1 + 1 - 3) sin(x): -sin(x)
+    assert e.op == "neg" and e.args[0] is parse("sin(x)")
+    for a, b in [(0.1, 0.2), (0.5, 0.25), (1e308, 1e308), (3.0, -3.0), (2.0**-1074, 1.0),
+                 (1e16, 1.0), (0.75, 2.0**-60)]:
+        e = parse(f"{a!r}*y + {b!r}*y")
+        exact = Fraction(a) + Fraction(b)
+        if e.op == "mul":
+            assert Fraction(e.args[0].param) == exact
+        elif e.op == "const":
+            assert e.param == 0.0 and exact == 0
+        else:                      # kept: the float64 sum is inexact or overflows
+            assert e.op == "add"
+            assert not math.isfinite(a + b) or Fraction(a + b) != exact

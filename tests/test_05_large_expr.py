@@ -287,33 +287,40 @@ def test05_sum_of_distinct_terms(rng):
 # -- 4. a chain of 100,000 additions ----------------------------------------
 
 def test06_long_chain():
-    """x + x*0.5 + x*0.25 + ... (100,000 terms, coefficients 2^-(i mod 8)):
-    a left-deep chain 100,000 additions deep; oracle: x * math.fsum of the
-    coefficients. Every partial sum needs at most 24 bits for these x, so
+    """x + y*0.5 + x*0.25 + y*0.125 + ... (100,000 terms, coefficients
+    2^-(i mod 8), the variables alternating, so that no two neighbours are
+    like terms that construction would fold into one): a left-deep chain
+    100,000 additions deep; oracle: math.fsum of the coefficients of x and
+    of y. Every partial sum needs at most 24 bits for these x = y, so
     float64 and Dr.Jit's float32 must both give it exactly."""
     n = 100_000
     coef = [0.5 ** (i % 8) for i in range(1, n)]
-    text = "x" + "".join(f"+x*{c!r}" for c in coef)
+    var = ["xy"[i % 2] for i in range(1, n)]
+    text = "x" + "".join(f"+{v}*{c!r}" for v, c in zip(var, coef))
     f = parse(text)
     depth, e = 0, f
     while e.op == "add":
         depth, e = depth + 1, e.args[0]
     assert depth == n - 1
     X = np.array([-3.0, -1.5, 0.0, 0.75, 3.0])
-    C = math.fsum([1.0, *coef])
-    s = X * C
-    np.testing.assert_array_equal(evaluate(f, {"x": X}), s)
+    Cx = math.fsum([1.0, *(c for v, c in zip(var, coef) if v == "x")])
+    Cy = math.fsum(c for v, c in zip(var, coef) if v == "y")
+    s = X * (Cx + Cy)
+    np.testing.assert_array_equal(evaluate(f, {"x": X, "y": X}), s)
     gx, gy, gz = gradient(f)
-    assert gx.op == "const" and gx.param == C and gy.param == 0.0 and gz.param == 0.0
+    assert gx.op == "const" and gx.param == Cx and gy.param == Cy and gz.param == 0.0
     H = hessian(f)
     assert all(h.param == 0.0 for row in H for h in row)
     D = np.array([0.5, -2.0, 1.0, 0.25, 1.0])
     g, h = ray_derivatives(f)
-    np.testing.assert_array_equal(evaluate(g, {"x": X, "dx": D}), D * C)
+    np.testing.assert_array_equal(evaluate(g, {"x": X, "y": X, "dx": D, "dy": D}),
+                                  D * (Cx + Cy))
     assert h.param == 0.0
-    i = evaluate_interval(f, {"x": Interval(X - 1e-6, X + 1e-6)}, NUMPY)
+    i = evaluate_interval(f, {"x": Interval(X - 1e-6, X + 1e-6), "y": Interval(X - 1e-6, X + 1e-6)},
+                          NUMPY)
     assert np.all(i.lo <= s) and np.all(s <= i.hi)
-    assert to_string(f) == "x" + "".join(" + x" if c == 1 else f" + {c!r}*x" for c in coef)
+    assert to_string(f) == "x" + "".join(f" + {v}" if c == 1 else f" + {c!r}*{v}"
+                                         for v, c in zip(var, coef))
     _drjit_check(f, np.array([X, X, X]), s, rtol=0, atol=0, per_kernel=1000)
 
 

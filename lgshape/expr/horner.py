@@ -20,12 +20,23 @@ from .node import Expr, topological
 
 
 def horner(f: Expr) -> Expr:
-    """f with each sum's powers of a common subexpression in Horner form."""
+    """f with each sum's powers of a common subexpression in Horner form.
+
+    Each sum is regrouped once, at its outermost node (one used by a node
+    other than a sum, or f itself); a sum node used by sums only is rebuilt
+    on its rewritten arguments (its terms are regrouped with the whole
+    sum's), so the time is linear in the size of f, not quadratic in a
+    sum's length."""
+    nodes = topological([f])
+    outer = {id(f)}          # nodes used by a node that is not add or sub
+    for n in nodes:
+        if n.op != "add" and n.op != "sub":
+            outer.update(id(a) for a in n.args)
     out: dict[int, Expr] = {}
-    for n in topological([f]):
+    for n in nodes:
         if not n.args:
             out[id(n)] = n
-        elif n.op in ("add", "sub"):
+        elif n.op in ("add", "sub") and id(n) in outer:
             out[id(n)] = _sum(n, out)
         elif n.op == "pow":
             out[id(n)] = N.power(out[id(n.args[0])], n.param)
@@ -35,17 +46,21 @@ def horner(f: Expr) -> Expr:
 
 
 def _terms(n: Expr, sign: float, acc: list):
-    """The terms of the sum tree at n, with their signs (original nodes)."""
-    if n.op == "add":
-        _terms(n.args[0], sign, acc)
-        _terms(n.args[1], sign, acc)
-    elif n.op == "sub":
-        _terms(n.args[0], sign, acc)
-        _terms(n.args[1], -sign, acc)
-    elif n.op == "neg":
-        _terms(n.args[0], -sign, acc)
-    else:
-        acc.append((sign, n))
+    """The terms of the sum tree at n, with their signs (original nodes),
+    left to right. Iterative: any depth."""
+    stack = [(n, sign)]
+    while stack:
+        n, sign = stack.pop()
+        if n.op == "add":
+            stack.append((n.args[1], sign))
+            stack.append((n.args[0], sign))
+        elif n.op == "sub":
+            stack.append((n.args[1], -sign))
+            stack.append((n.args[0], sign))
+        elif n.op == "neg":
+            stack.append((n.args[0], -sign))
+        else:
+            acc.append((sign, n))
 
 
 def _power_of(e: Expr):

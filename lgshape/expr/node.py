@@ -237,6 +237,36 @@ def _node(op, *args, param=None) -> Expr:
 # "const" and x.param == v``) rather than through methods: they run for every
 # node that parsing and differentiation build.
 
+def _term(e: Expr):
+    """e as c * t, c a constant: (c, t); (1, e) for any other e."""
+    if e.op == "mul" and e.args[0].op == "const":
+        return e.args[0].param, e.args[1]
+    return 1.0, e
+
+
+def _like_terms(a: Expr, b: Expr, sign: float):
+    """a + sign * b as one term (c_a + sign c_b) * t where a and b are
+    constant multiples of one non-constant t (``x + x`` is ``2 * x``, ``3 *
+    x + x`` is ``4 * x``), where c_a + sign c_b is exact in float64 (then
+    the expression's real value is unchanged); None otherwise. This keeps a
+    sum of n equal terms, as written out (``x + x + ... + x``), one node
+    instead of n."""
+    if a.op == "const" or b.op == "const":
+        return None
+    ca, ta = _term(a)
+    cb, tb = _term(b)
+    if ta is not tb:
+        return None
+    cb = sign * cb
+    c = ca + cb
+    if not math.isfinite(c):
+        return None
+    bv = c - ca                        # Knuth's TwoSum: the rounding error of c
+    if (ca - (c - bv)) + (cb - bv) != 0.0:
+        return None
+    return mul(c, ta)
+
+
 def add(a, b) -> Expr:
     if a.__class__ is not Expr:
         a = Expr.lift(a)
@@ -248,6 +278,9 @@ def add(a, b) -> Expr:
         return a
     if b.op == "neg":
         return sub(a, b.args[0])
+    like = _like_terms(a, b, 1.0)
+    if like is not None:
+        return like
     return _node("add", a, b)
 
 
@@ -264,6 +297,9 @@ def sub(a, b) -> Expr:
         return ZERO
     if b.op == "neg":
         return add(a, b.args[0])
+    like = _like_terms(a, b, -1.0)
+    if like is not None:
+        return like
     return _node("sub", a, b)
 
 
@@ -369,3 +405,50 @@ def minimum(a, b, *more) -> Expr:
 def maximum(a, b, *more) -> Expr:
     """max(a, b, ...) as a balanced tree of binary max nodes."""
     return _reduce_balanced("max", (a, b, *more))
+
+
+def _rebuilt(n: Expr, args) -> Expr:
+    """n's op on new arguments, through the simplifying constructors."""
+    op = n.op
+    if op in ("add", "sub", "mul", "div"):
+        return {"add": add, "sub": sub, "mul": mul, "div": div}[op](*args)
+    if op == "neg":
+        return neg(args[0])
+    if op == "pow":
+        return power(args[0], n.param)
+    if op in ("min", "max"):
+        a, b = args
+        return a if a is b else _node(op, a, b)
+    return _node(op, *args, param=n.param)
+
+
+def constant_value(f: Expr):
+    """The value of f where it does not depend on x, y, z once its named
+    constants take their values (``1``, ``sqrt(2)``, ``a*x + 1`` with a =
+    0): a float (NaN or infinite where f is undefined or overflows); None
+    where f keeps a variable. Decided on the structure (each named constant
+    replaced by its value and the DAG rebuilt through the simplifying
+    constructors, linear in its size), never by sampling: ``x - x`` is 0,
+    ``(x + 1)^2 - x^2 - 2*x - 1`` is not recognised."""
+    nodes = topological([f])
+    if any(n.op == "named" for n in nodes):
+        out = {}
+        for n in nodes:
+            if n.op == "named":
+                out[id(n)] = const(n.param[1])
+            elif not n.args:
+                out[id(n)] = n
+            else:
+                args = [out[id(a)] for a in n.args]
+                out[id(n)] = n if all(a is b for a, b in zip(args, n.args)) else _rebuilt(n, args)
+        f = out[id(f)]
+        nodes = topological([f])
+    if any(n.op == "var" for n in nodes):
+        return None
+    if f.op == "const":
+        return f.param
+    from ..arraymath import NUMPY       # (late, as in _node: numpy only where needed)
+    from .evaluate import evaluate
+    import numpy as np
+    with np.errstate(all="ignore"):
+        return float(evaluate(f, {}, NUMPY))

@@ -33,7 +33,7 @@ operand is complete, which keeps them left-associative), and a complete
 expression closes a parenthesis, a call argument or the text. It builds the
 same nodes in the same order, and fails at the same token with the same
 message, as the recursive version did. Time and memory are linear in the
-length of the text.
+length of the text (the tokenizer too, whitespace included: :func:`_tokenize`).
 """
 from __future__ import annotations
 
@@ -44,9 +44,11 @@ import re
 from . import node as N
 from .ops import CONSTANTS, FUNCTIONS
 
-# One token, after any whitespace; `bad` catches a character no token starts with.
-_TOKEN = re.compile(r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)|(?P<name>[A-Za-z_]\w*)"
-                    r"|(?P<op>\*\*|[-+*/^(),])|(?P<bad>\S))")
+# One token (matched where the whitespace before it ends); `bad` catches a
+# character no token starts with.
+_TOKEN = re.compile(r"(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)|(?P<name>[A-Za-z_]\w*)"
+                    r"|(?P<op>\*\*|[-+*/^(),])|(?P<bad>\S)")
+_SPACE = re.compile(r"\s*")
 
 _BUILD = {"sqrt": N.sqrt, "exp": N.exp, "log": N.log, "sin": N.sin, "cos": N.cos,
           "abs": N.abs_, "min": N.minimum, "max": N.maximum}
@@ -89,15 +91,29 @@ class ParseError(ValueError):
 
 
 def _tokenize(text: str) -> list:
-    tokens = []  # (kind, value, position)
+    """The tokens of ``text``: [(kind, value, position), ..., ("end", "", len)].
+
+    Linear in the length of the text: two anchored matches per token (its
+    leading whitespace, then the token), each reading only the characters it
+    consumes and one more, so every character is read a bounded number of
+    times. (A search for a token preceded by optional whitespace, as this
+    once was, rescans a run of trailing whitespace from each of its
+    positions: quadratic in its length.)"""
+    tokens = []
     append = tokens.append
-    for m in _TOKEN.finditer(text):  # consecutive: only trailing whitespace is left over
+    space, token = _SPACE.match, _TOKEN.match
+    pos, n = 0, len(text)
+    while True:
+        pos = space(text, pos).end()
+        if pos >= n:
+            break
+        m = token(text, pos)            # never None: `bad` takes any non-space
         kind = m.lastgroup
-        pos = m.start(kind)
         if kind == "bad":
             raise ParseError(text, pos, f"unexpected character {text[pos]!r}")
         append((kind, m.group(kind), pos))
-    append(("end", "", len(text)))
+        pos = m.end()
+    append(("end", "", n))
     return tokens
 
 
