@@ -34,13 +34,16 @@ names that the scene does not use, ``-D`` values that the scene's
 count 0, XML and plugin errors from Mitsuba and lgsurface (without the
 Python traceback that Mitsuba embeds in a plugin's error), ``-D name=a:b``
 without ``--frames``, a ``--frames`` or ``--workers`` below 1, an ``--fps``
-that is not positive.
+that is not positive. lgshape's warnings (an lgsurface with nothing to hit,
+an integrator that cannot see lgsurfaces) are printed as
+``lgshape: warning: ...`` on stderr.
 """
 from __future__ import annotations
 
 import argparse
 import os
 import sys
+import warnings
 
 from .plugins import VariantError
 from .render import (DEFAULT_VARIANT, CommandError, check_defines, check_output,
@@ -61,13 +64,26 @@ def main(argv=None) -> int:
         return bench.main(argv[1:])
     args = _parser().parse_args(argv)
     try:
-        return render(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _showing(warnings.showwarning)
+            return render(args)
     except (CommandError, VariantError) as err:
         print(f"lgshape: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("\nlgshape: interrupted", file=sys.stderr)
         return 130
+
+
+def _showing(others):
+    """A ``warnings.showwarning`` that prints lgshape's warnings as the
+    command's own lines and passes the others to ``others``."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        if category.__module__.startswith("lgshape"):
+            print(f"lgshape: warning: {message}", file=sys.stderr)
+        else:
+            others(message, category, filename, lineno, file, line)
+    return show
 
 
 def _parser() -> argparse.ArgumentParser:

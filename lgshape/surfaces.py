@@ -4,9 +4,17 @@ Each function returns an :class:`Implicit`: the expression f (surface f = 0,
 f < 0 inside where that has a meaning) and a default bounding box. Several of
 these algebraic surfaces are unbounded; their box is the usual clipping
 region in which they are shown.
+
+A function's sizes (radii, half sizes, widths: its attribute ``sizes``)
+must be positive; a value <= 0 raises ValueError naming the surface, the
+parameter and the value (``sphere: radius must be > 0, got -1``), as do the
+other values a surface cannot take (a gyroid's ``scale`` 0, a Kummer
+surface's ``mu2`` 3).
 """
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 from dataclasses import dataclass
 
@@ -32,11 +40,40 @@ def _cube(h: float) -> Box:
     return ((-h, -h, -h), (h, h, h))
 
 
+def _sizes(*names):
+    """Declare a library function's size parameters (``fn.sizes``) and
+    refuse a value <= 0 for any of them before f is built."""
+    def wrap(fn):
+        signature = inspect.signature(fn)
+
+        @functools.wraps(fn)
+        def checked(*args, **kwargs):
+            bound = signature.bind(*args, **kwargs)
+            bound.apply_defaults()
+            for name in names:
+                _require(fn.__name__, name, bound.arguments[name], lambda v: v > 0, "> 0")
+            return fn(*args, **kwargs)
+        checked.sizes = names
+        return checked
+    return wrap
+
+
+def _require(surface, name, value, ok, what):
+    """ValueError unless ``ok(value)`` (a number or a named constant; an
+    expression of Python's API is not checked)."""
+    if isinstance(value, Expr) and value.op != "named":
+        return
+    if not ok(_number(value)):
+        raise ValueError(f"{surface}: {name} must be {what}, got {_number(value):g}")
+
+
+@_sizes("radius")
 def sphere(radius: float = 1.0) -> Implicit:
     """Sphere x^2 + y^2 + z^2 - r^2."""
     return Implicit("sphere", x**2 + y**2 + z**2 - radius**2, _cube(1.1 * radius))
 
 
+@_sizes("R", "r")
 def torus(R: float = 1.0, r: float = 0.4) -> Implicit:
     """Torus around the z axis: (x^2 + y^2 + z^2 + R^2 - r^2)^2 - 4 R^2 (x^2 + y^2)."""
     q = x**2 + y**2
@@ -66,6 +103,8 @@ def kummer(mu2: float = 1.69) -> Implicit:
     """Kummer quartic (16 nodes): (x^2 + y^2 + z^2 - mu^2)^2 - lambda p q r s with
     lambda = (3 mu^2 - 1) / (3 - mu^2), p = 1 - z - sqrt2 x, q = 1 - z + sqrt2 x,
     r = 1 + z + sqrt2 y, s = 1 + z - sqrt2 y; mu^2 = 1.69. Shown in [-2.2, 2.2]^3."""
+    _require("kummer", "mu2", mu2, lambda v: v != 3,
+             "other than 3 (lambda = (3 mu^2 - 1) / (3 - mu^2) would be infinite)")
     lam = (3 * mu2 - 1) / (3 - mu2)
     s2 = math.sqrt(2.0)
     p, q = 1 - z - s2 * x, 1 - z + s2 * x
@@ -103,6 +142,7 @@ def wyvill_kernel(u: Expr) -> Expr:
     return 1 - (4 / 9) * u**3 + (17 / 9) * u**2 - (22 / 9) * u
 
 
+@_sizes("radius")
 def blobs(centers=((-0.45, 0.0, 0.0), (0.45, 0.0, 0.0), (0.0, 0.55, 0.2)),
           radius: float = 1.0, threshold: float = 0.5) -> Implicit:
     """Wyvill soft objects: threshold - sum_i kernel(|p - c_i|^2 / R^2)."""
@@ -116,8 +156,10 @@ def blobs(centers=((-0.45, 0.0, 0.0), (0.45, 0.0, 0.0), (0.0, 0.55, 0.2)),
     return Implicit("blobs", threshold - total, (lo, hi))
 
 
+@_sizes("half_size")
 def gyroid(scale: float = 2.0, half_size: float = 1.5) -> Implicit:
     """Gyroid: sin(s x) cos(s y) + sin(s y) cos(s z) + sin(s z) cos(s x)."""
+    _require("gyroid", "scale", scale, lambda v: v != 0, "nonzero (f would be 0 everywhere)")
     X, Y, Z = scale * x, scale * y, scale * z
     e = sin(X) * cos(Y) + sin(Y) * cos(Z) + sin(Z) * cos(X)
     return Implicit("gyroid", e, _cube(half_size))
@@ -128,6 +170,7 @@ SPIKE_AXES = tuple(
     + [tuple(s / math.sqrt(3) for s in (a, b, 1)) for a in (1, -1) for b in (1, -1)])
 
 
+@_sizes("core", "width")
 def spikes(core: float = 0.5, height: float = 1.0, width: float = 0.01,
            axes=SPIKE_AXES) -> Implicit:
     """A ball of radius ``core`` with 14 needle-thin spikes (seven lines through
@@ -147,7 +190,7 @@ def spikes(core: float = 0.5, height: float = 1.0, width: float = 0.01,
                 rho2 = ci**2 if rho2 is None else rho2 + ci**2
         term = exp(rho2 * (-1.0 / width**2))
         total = term if total is None else total + term
-    h = 1.05 * math.sqrt(_number(core)**2 + _number(height))
+    h = 1.05 * math.sqrt(_number(core)**2 + max(_number(height), 0.0))
     return Implicit("spikes", r2 - core**2 - height * total, _cube(h))
 
 
@@ -156,6 +199,11 @@ def _number(v) -> float:
     return v.param[1] if isinstance(v, Expr) and v.op == "named" else float(v)
 
 
+#: Each library function's size parameters (all must be > 0).
+SIZES = {}
+
+
 #: Library surfaces by name (for the XML plugin's ``surface`` parameter).
 LIBRARY = {f.__name__: f for f in (sphere, torus, tangle, barth_sextic, kummer, chmutov6,
                                    clebsch, blobs, gyroid, spikes)}
+SIZES.update((name, getattr(fn, "sizes", ())) for name, fn in LIBRARY.items())

@@ -12,10 +12,12 @@ shape once a Mitsuba release traces Python shapes.
 """
 from __future__ import annotations
 
+import difflib
 import inspect
 import math
 import numbers
 import os
+import warnings
 
 import numpy as np
 
@@ -27,8 +29,10 @@ from lgshape import surfaces
 from lgshape.arraymath import DrJitMath
 from lgshape.expr import evaluate, gradient
 from lgshape.expr.node import topological
+from lgshape.expr.ops import FUNCTIONS
 from lgshape.expr.parser import free_names
 from .area import replace_area_light
+from .checks import LGShapeWarning
 
 #: Relative distance (times the world box diagonal) below which a ray does not
 #: report a hit: a ray spawned from the surface must not find the point it
@@ -137,7 +141,10 @@ class LGSurface(mi.Mesh):
     named constants (``<id>.radius``), a primitives file's ``smoothness`` or
     ``threshold``; and those of its BSDF (``<id>.bsdf....``) and media.
     The surface's own are differentiable (and discontinuous: they move
-    silhouettes) under ``lg_prb``: the search stays detached and a hit is
+    silhouettes) under ``lg_prb`` where f holds them as named constants
+    (``to_world`` and all of them but a library surface's parameter that only
+    sets its box, e.g. ``gyroid.half_size``, which ``mi.traverse`` flags
+    non-differentiable): the search stays detached and a hit is
     attached to them by the implicit-function theorem
     (:meth:`compute_surface_interaction`); other integrators refuse a
     render with a gradient on one
@@ -145,7 +152,11 @@ class LGSurface(mi.Mesh):
     ``params.update()`` a new value of a parameter of f builds a new
     :class:`lgshape.Surface` (its compiled kernels are reused: its
     constants are opaque), a new ``to_world`` only new matrices and bounds;
-    the render then equals that of a scene loaded with the new values. The
+    the render then equals that of a scene loaded with the new values. A
+    size of a library surface (``lgshape.surfaces.SIZES``: radius, R, r,
+    half_size, ...) must be > 0, at load and at update. Where f has no zero
+    in its box (no cell of the pruning grid is occupied), loading (or an
+    update that leaves it so) warns once (:class:`~.checks.LGShapeWarning`). The
     placeholder triangle's keys (``vertex_positions``, ``faces``, ...) are
     not listed.
 
@@ -192,10 +203,13 @@ class LGSurface(mi.Mesh):
                     "'area' emitter can")
             # evaluated at this surface's uv, sampled by the lg integrators
             props[name] = replace_area_light(props.get(name))
-        self._source = _read_surface(props)
-        self._bbox_given = _read_bbox(props)
-        self._hints = {"L": _positive(props, "L"), "G": _positive(props, "G"),
-                       "depth": _depth(props)}
+        try:
+            self._source = _read_surface(props)
+            self._bbox_given = _read_bbox(props)
+            self._hints = {"L": _positive(props, "L"), "G": _positive(props, "G"),
+                           "depth": _depth(props)}
+        except ValueError as err:        # (ParseError too): name the unknown keys as well
+            raise _naming_unknown(err, props) from None
         to_world = props.get("to_world", mi.ScalarTransform4f())
         self.flip = bool(props.get("flip_normals", False))
         # The scene parameters (mi.traverse): Dr.Jit values that
@@ -214,10 +228,8 @@ class LGSurface(mi.Mesh):
 
         unknown = props.unqueried()
         if unknown:
-            known = ", ".join(dict.fromkeys(list(_OWN) + list(self._source.values)))
-            raise ValueError(f"lgsurface: unknown parameter '{unknown[0]}'"
-                             f"{' (and ' + ', '.join(unknown[1:]) + ')' if unknown[1:] else ''}"
-                             f"; known parameters: {known}{self._source.hint}")
+            known = list(dict.fromkeys(list(_OWN) + list(self._source.values)))
+            raise ValueError(_unknown_text(unknown, known) + self._source.hint)
 
         self._values = dict(self._source.values)        # the values in use
         self.surface, self.source = self._build(self._values)
@@ -234,9 +246,13 @@ class LGSurface(mi.Mesh):
         """The BSDF (and any emitter or medium) as children, with Mitsuba's flags, then
         ``to_world`` (an ``AffineTransform4f``) and every numeric parameter
         of f (a ``Float``: a library surface's parameters, an expression's
-        named constants, a primitives file's ``smoothness``/``threshold``),
+        named constants, a primitives file's ``smoothness``/``threshold``).
+        ``to_world`` and the parameters that f holds as named constants
+        (those ``lg_prb`` differentiates, :meth:`differentiable`) are flagged
         differentiable and discontinuous (they move the surface's
-        silhouettes). The placeholder mesh's own parameters
+        silhouettes); the others (a library surface's parameter that only
+        sets its box, such as ``gyroid.half_size``, or one its function
+        computes with in Python) non-differentiable. The placeholder mesh's own parameters
         (``vertex_positions``, ``faces``, ...) are not listed: they are not
         the surface's (:meth:`_set_placeholder` reaches them)."""
         if self._mesh_traversal:
@@ -248,8 +264,26 @@ class LGSurface(mi.Mesh):
                 callback.put(name, child, mi.ParamFlags.Differentiable)
         flags = mi.ParamFlags.Differentiable | mi.ParamFlags.Discontinuous
         callback.put("to_world", self._to_world, flags)
+        differentiable = self.differentiable()
         for name, value in self._params.items():
-            callback.put(name, value, flags)
+            callback.put(name, value, flags if name in differentiable
+                         else mi.ParamFlags.NonDifferentiable)
+
+    def differentiable(self) -> set:
+        """The names of f's parameters that ``lg_prb`` differentiates: those
+        f holds as named constants (a primitives file's ``smoothness`` as its
+        constants k, 1/k and k/4). A gradient on another one is a
+        :class:`~lgshape.plugins.checks.NotDifferentiableError`."""
+        named = self._named_constants()
+        return {k for k in self._params
+                if k in named or (k == "smoothness" and {"k", "k_inverse", "k_quarter"} <= named)}
+
+    def _named_constants(self) -> set:
+        if getattr(self, "_ad", None) is None:
+            f = self.surface.expr
+            named = {n.param[0] for n in topological([f]) if n.op == "named"}
+            self._ad = (f, list(gradient(f)), named)
+        return self._ad[2]
 
     def gradient_keys(self) -> list:
         """The keys (as ``mi.traverse`` names them) of this surface's
@@ -322,11 +356,31 @@ class LGSurface(mi.Mesh):
         hints = dict(self._hints)
         if self._bbox_given is None and self._source.values:
             hints["named_centre"] = True
-        try:
-            surface = lgshape.Surface(implicit, bbox=bbox, **hints)
-        except ValueError as err:
-            raise ValueError(f"lgsurface: {err}") from None
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            try:
+                surface = lgshape.Surface(implicit, bbox=bbox, **hints)
+            except ValueError as err:
+                raise ValueError(f"lgsurface: {err}") from None
         self.builds += 1
+        empty = not _hittable(surface)
+        if empty and not getattr(self, "_empty", False):
+            # said once per load (and again only after an update that
+            # empties a surface that had one): this warning stands for the
+            # library's own about the same f (a constant one, say)
+            lo, hi = surface.bbox
+            name = f"'{self.id()}'" if self.id() else "(no id)"
+            warnings.warn(
+                f"lgsurface {name}: f has no zero in its box {_point(lo)} .. {_point(hi)} "
+                f"(no cell of its pruning grid can hold f = 0): nothing of it can be hit and "
+                f"it will be missing from the image; check f's constants and signs, or the "
+                f"box (bbox_min / bbox_max)", LGShapeWarning, stacklevel=_caller_level())
+        for w in said:        # the library's (lgshape.trace's EmptySurfaceWarning) stand aside
+            library = w.category.__module__.startswith("lgshape.") and \
+                not w.category.__module__.startswith("lgshape.plugins")
+            if not (empty and library):
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        self._empty = empty
         return surface, self._source.describe(values, implicit)
 
     def _set_matrix(self, matrix):
@@ -573,10 +627,7 @@ class LGSurface(mi.Mesh):
         does not hold as a named constant (a library surface that computes
         with it in Python) cannot be differentiated: an error names it."""
         from .checks import NotDifferentiableError
-        if getattr(self, "_ad", None) is None:
-            f = self.surface.expr
-            named = {n.param[0] for n in topological([f]) if n.op == "named"}
-            self._ad = (f, list(gradient(f)), named)
+        self._named_constants()
         f, grad_f, named = self._ad
         bound = {}
         prefix = f"{self.id()}." if self.id() else ""
@@ -705,6 +756,8 @@ def _read_surface(props) -> _Source:
         try:
             spec = fn(**values)
         except (ValueError, ZeroDivisionError, OverflowError) as err:
+            if str(err).startswith(f"{name}: "):         # it names the parameter and value
+                raise ValueError(f"lgsurface: {err}") from None
             args = ", ".join(f"{k}={v:g}" for k, v in values.items())
             raise ValueError(f"lgsurface: surface '{name}' with {args}: {err}") from None
         return _with_named_constants(fn, values, spec)
@@ -748,15 +801,14 @@ def _read_expr(props, text, what, where) -> _Source:
     try:
         free = free_names(text)
     except lgshape.ParseError as err:
-        raise ValueError(f"lgsurface: malformed {where}: {err}") from None
+        raise _parse_error(err, f"lgsurface: malformed {where}: {err}") from None
     values = {}
     for name, pos in free:
         if name in _RESERVED:
-            raise ValueError(f"lgsurface: malformed {where}: "
-                             + str(lgshape.ParseError(
-                                 text, pos, f"the name {name!r} cannot be a named constant: "
-                                 f"it is a parameter of lgsurface itself (one of "
-                                 f"{', '.join(_RESERVED)}); rename the constant")))
+            err = lgshape.ParseError(text, pos, f"the name {name!r} cannot be a named constant: "
+                                     f"it is a parameter of lgsurface itself (one of "
+                                     f"{', '.join(_RESERVED)}); rename the constant", name)
+            raise _parse_error(err, f"lgsurface: malformed {where}: {err}")
         if name in props:
             v = props.get(name)
             if isinstance(v, bool) or not isinstance(v, numbers.Real) \
@@ -765,16 +817,15 @@ def _read_expr(props, text, what, where) -> _Source:
                                  f"but its property is not a finite number: {v!r}")
             values[name] = float(v)
     unbound = [name for name, _ in free if name not in values]
+    others = [k for k in props.keys() if k not in _RESERVED and k not in values
+              and props.type(k) != mi.Properties.Type.Object]
 
     def build(values):
         try:
             return lgshape.parse(text, constants=values)
         except lgshape.ParseError as err:
-            hint = ""
-            if err.identifier is not None:
-                hint = (f"\n  a named constant needs a number property of the shape, e.g. "
-                        f"<float name=\"{err.identifier}\" value=\"1\"/>")
-            raise ValueError(f"lgsurface: malformed {where}: {err}{hint}") from None
+            hint = "" if err.identifier is None else _identifier_hint(err, others)
+            raise _parse_error(err, f"lgsurface: malformed {where}: {err}{hint}") from None
         except ValueError as err:
             raise ValueError(f"lgsurface: {where}: {err}") from None
 
@@ -787,6 +838,96 @@ def _read_expr(props, text, what, where) -> _Source:
     return _Source(values, build, describe,
                    " (a number property is a named constant only where the expression "
                    "uses its name)")
+
+
+def _parse_error(err, message):
+    """A :class:`lgshape.ParseError` like ``err`` (its text, position and
+    identifier) with the message ``message``."""
+    new = lgshape.ParseError.__new__(lgshape.ParseError)
+    ValueError.__init__(new, message)
+    new.text, new.pos, new.identifier = err.text, err.pos, err.identifier
+    return new
+
+
+def _identifier_hint(err, properties):
+    """What an unknown identifier of an expression may be: a function the
+    language lacks (it is called), or a named constant without its property
+    (``properties``: the shape's other number properties, for a misspelt one)."""
+    name = err.identifier
+    if err.text[err.pos + len(name):].lstrip().startswith("("):
+        close = difflib.get_close_matches(name, list(FUNCTIONS), n=1)
+        return (f"\n  '{name}' is not a function of the expression language; its functions "
+                f"are {', '.join(FUNCTIONS)}"
+                + (f" (did you mean '{close[0]}'?)" if close else ""))
+    close = difflib.get_close_matches(name, properties, n=1)
+    return (f"\n  a named constant needs a number property of the shape, e.g. "
+            f"<float name=\"{name}\" value=\"1\"/>"
+            + (f" (the shape has a property '{close[0]}': a misspelling?)" if close else ""))
+
+
+def _unknown_text(unknown, known):
+    """'lgsurface: unknown parameter ...' naming the unknown keys, the
+    closest known key of each where one is close, and the known keys."""
+    def one(key):
+        close = difflib.get_close_matches(key, known, n=1)
+        return f"'{key}'" + (f" (did you mean '{close[0]}'?)" if close else "")
+    return (f"lgsurface: unknown parameter{'s' if len(unknown) > 1 else ''} "
+            f"{', '.join(one(k) for k in unknown)}; known parameters: {', '.join(known)}")
+
+
+def _naming_unknown(err, props):
+    """``err`` (raised while reading the properties), its message extended
+    by the properties that no reading of them knows (``grid``, ``filename``,
+    ...): those an error before the unknown-parameter check would hide."""
+    if "expr_file" in props:
+        return err              # (its named constants are in the file: not known here)
+    known = list(_OWN)
+    name = props.get("surface") if "surface" in props else None
+    if isinstance(name, str) and name in surfaces.LIBRARY:
+        known += list(inspect.signature(surfaces.LIBRARY[name]).parameters)
+    if "expr" in props and isinstance(props.get("expr"), str):
+        try:
+            known += [n for n, _ in free_names(props.get("expr"))]
+        except lgshape.ParseError:
+            pass
+    unknown = [k for k in props.keys() if k not in known and k not in _RESERVED
+               and props.type(k) != mi.Properties.Type.Object]
+    if unknown:
+        text = _unknown_text(unknown, list(dict.fromkeys(known)))
+        err.args = (f"{err}\n  also: {text[len('lgsurface: '):]}",)
+    return err
+
+
+def _hittable(surface) -> bool:
+    """Can a ray hit ``surface``: does an occupied cell of its pruning grid
+    (where f may vanish) meet its box? (The grid may be a cube about a flat
+    box, with cells outside it.)"""
+    grid = surface.grid
+    cells = np.asarray(getattr(grid, "cells", np.zeros((1, 3))), np.float64).reshape(-1, 3)
+    if len(cells) == 0:
+        return False
+    if not hasattr(grid, "cell_size"):
+        return True
+    size = np.asarray(grid.cell_size, np.float64)
+    lo_c = np.asarray(grid.lo, np.float64) + cells * size
+    lo, hi = (np.asarray(v, np.float64) for v in surface.bbox)
+    return bool(np.any(np.all((lo_c <= hi) & (lo_c + size >= lo), axis=1)))
+
+
+def _caller_level() -> int:
+    """The ``stacklevel`` for a warning given in this module that points at
+    the user's code: the first frame outside lgshape's plugins and Mitsuba
+    (a load or ``params.update()`` call)."""
+    import sys
+    skip = (os.path.dirname(os.path.abspath(__file__)), os.path.dirname(mi.__file__))
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(skip):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+def _point(p):
+    return "(" + ", ".join(f"{float(v):g}" for v in p) + ")"
 
 
 def _resolve(name, what):

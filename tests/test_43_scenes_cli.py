@@ -303,6 +303,12 @@ BROKEN_SCENES = {
                                            '<point name="bbox_min" value="-1, -1, -1"/>'
                                            '<point name="bbox_max" value="1, 1, 1"/>'),
                        ["lgsurface: malformed 'expr'", "at position 7"]),
+    "bad-size": (lambda t: t.replace('value="torus"/>', 'value="torus"/><float name="r" '
+                                                          'value="-0.2"/>'),
+                 ["lgsurface: torus: r must be > 0, got -0.2", "bad.xml (line "]),
+    "unknown-key": (lambda t: t.replace('value="torus"/>', 'value="torus"/><integer '
+                                                          'name="grid" value="3"/>'),
+                    ["lgsurface: unknown parameter 'grid'"]),
     "bad-aov": (lambda t: t.replace("dd.y:depth", "dd.y:deep"),
                 ["lg_aov: unknown AOV type 'deep'"]),
     "no-sensor": (lambda t: t[:t.index("<sensor")] + t[t.index("</sensor>") + 9:],
@@ -338,6 +344,20 @@ def test13_plugin_error_from_a_define(tmp_path, capsys):
     assert "lg_path: 'max_depth' must be -1 (no limit) or >= 0" in err
     assert "-D max_depth=-5" in err and "Traceback" not in err
     assert os.listdir(tmp_path) == []
+
+
+def test12b_empty_surface_warned(tmp_path, capsys):
+    # Oracle: f = x^2 + y^2 + z^2 + 1 >= 1 has no zero: the command says so
+    # once, as its own warning, and renders.
+    scene = tmp_path / "empty.xml"
+    scene.write_text(AOV_SCENE.format(nested="").replace(
+        '<shape type="lgsurface">', '<shape type="lgsurface" id="ball">').replace(
+        '<string name="surface" value="torus"/>',
+        '<string name="expr" value="x^2 + y^2 + z^2 + 1"/>'
+        '<point name="bbox_min" value="-1, -1, -1"/><point name="bbox_max" value="1, 1, 1"/>'))
+    assert cli.main(["render", str(scene), "-o", str(tmp_path / "x.png")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("lgshape: warning: lgsurface 'ball': f has no zero in its box") == 1, err
 
 
 def test07_missing_scene_and_bad_plugin(tmp_path, capsys):

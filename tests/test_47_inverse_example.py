@@ -3,8 +3,11 @@
 Oracle: the problem's true values (the target is rendered from them): after
 20 iterations of the torus problem (a small image, few samples), the image
 loss has fallen to under a quarter of its first value and both radii are
-closer to the truth than at the start. (The full run, 200 iterations to
-within 1% of every parameter, is measured in docs/BENCHMARKS.md.)
+closer to the truth than at the start; the target is rendered at the
+documented default of 32 x --spp; the last line is the verdict matching the
+exit status (converged: 0, did not converge: 1). (The full run, 200
+iterations to within 1% of every parameter, is measured in
+docs/BENCHMARKS.md.)
 """
 from __future__ import annotations
 
@@ -29,6 +32,9 @@ def test_torus_problem_optimises(tmp_path):
     for k in ("obj.R", "obj.r"):
         start, true = rec["start"][k], rec["true"][k]
         assert abs(rec["history"][-1][k] - true) < abs(start - true)
+    assert rec["target_spp"] == 32 * 8
+    verdict = out.stdout.strip().splitlines()[-1]
+    assert verdict.startswith("converged" if out.returncode == 0 else "did not converge"), verdict
     for name in ("target.exr", "start.exr", "final.exr", "history.json"):
         assert (tmp_path / name).stat().st_size > 0
     assert np.isfinite(losses).all()
