@@ -45,6 +45,11 @@ _SURFACE_FLAGS = int(mi.RayFlags.UV) | int(mi.RayFlags.dPdUV) | int(mi.RayFlags.
 
 _OWN = ("expr", "expr_file", "surface", "primitives", "combine", "smoothness", "threshold",
         "bbox_min", "bbox_max", "L", "G", "depth", "to_world", "flip_normals")
+#: Own parameters that only some ways of giving f read, and which those are.
+_APPLIES = {"combine": "goes with 'primitives'",
+            "smoothness": "goes with 'primitives' and combine 'smooth_union'",
+            "threshold": "goes with 'primitives' and combine 'blend'",
+            "bbox_min": "goes with 'bbox_max'", "bbox_max": "goes with 'bbox_min'"}
 
 
 class LGSurface(mi.Mesh):
@@ -227,6 +232,10 @@ class LGSurface(mi.Mesh):
         super().__init__("lgsurface", 3, 1, props)
 
         unknown = props.unqueried()
+        unused = [k for k in unknown if k in _APPLIES]
+        if unused:
+            raise ValueError("lgsurface: " + "; ".join(
+                f"'{k}' does not apply here: it {_APPLIES[k]}" for k in unused))
         if unknown:
             known = list(dict.fromkeys(list(_OWN) + list(self._source.values)))
             raise ValueError(_unknown_text(unknown, known) + self._source.hint)
@@ -726,6 +735,9 @@ def _read_surface(props) -> _Source:
         return _read_expr(props, text, f"expr_file '{path}'", f"expression in '{path}'")
     if "expr" in props:
         text = props.get("expr")
+        if not isinstance(text, str):
+            raise ValueError(f"lgsurface: 'expr' must be a string (an expression in x, y, z), "
+                             f"got {type(text).__name__} {text!r}")
         return _read_expr(props, text, f"expr '{text}'", "'expr'")
     if "surface" not in props:
         raise ValueError("lgsurface: needs 'expr' (an expression), 'expr_file', 'primitives' "
@@ -976,7 +988,10 @@ def _read_bbox(props):
     """The box given by bbox_min / bbox_max, or None (then f brings one)."""
     given = [k in props for k in ("bbox_min", "bbox_max")]
     if all(given):
-        lo, hi = (tuple(float(v) for v in props.get(k)) for k in ("bbox_min", "bbox_max"))
+        lo, hi = (_read_point(props, k) for k in ("bbox_min", "bbox_max"))
+        if not all(math.isfinite(v) for v in (*lo, *hi)):
+            raise ValueError(f"lgsurface: the box must be finite, got 'bbox_min' {lo}, "
+                             f"'bbox_max' {hi}")
         if not all(a < b for a, b in zip(lo, hi)):
             raise ValueError(f"lgsurface: 'bbox_min' {lo} must be below 'bbox_max' {hi} "
                              "on every axis")
@@ -985,6 +1000,18 @@ def _read_bbox(props):
         missing = "bbox_max" if given[0] else "bbox_min"
         raise ValueError(f"lgsurface: '{missing}' is missing (give both bbox_min and bbox_max)")
     return None
+
+
+def _read_point(props, key):
+    """A point property (three numbers) as a tuple of floats."""
+    v = props.get(key)
+    try:
+        point = tuple(float(c) for c in v)
+    except (TypeError, ValueError):
+        point = ()
+    if isinstance(v, str) or len(point) != 3:
+        raise ValueError(f"lgsurface: '{key}' must be a point (three numbers), got {v!r}")
+    return point
 
 
 def _read_value(name, value) -> float:

@@ -290,6 +290,23 @@ def test15_unknown_keys_always_named(props):
         load({"type": "lgsurface", **props})
 
 
+@pytest.mark.parametrize("props, message", [
+    ({"expr": 3}, "'expr' must be a string"),
+    ({"expr": "x - 1", "bbox_min": "abc", "bbox_max": [1, 1, 1]},
+     "'bbox_min' must be a point"),
+    ({"expr": "x - 1", "bbox_min": [-1, -1, -1], "bbox_max": [1, 1, float("inf")]},
+     "the box must be finite"),
+    ({"expr": "x - 1", **BOX, "smoothness": 0.1}, "'smoothness' does not apply here"),
+    ({"surface": "sphere", "threshold": 0.3}, "'threshold' does not apply here"),
+    ({"surface": "sphere", "combine": "blend"}, "'combine' does not apply here"),
+], ids=["expr_int", "bbox_text", "bbox_inf", "smoothness_with_expr", "threshold_with_surface",
+        "combine_with_surface"])
+def test15b_property_errors_name_the_property(props, message):
+    """Cases the fuzz test (test_20) met: each error names the property."""
+    with pytest.raises(ValueError, match=message):
+        load({"type": "lgsurface", **props})
+
+
 # ---- A variant change -------------------------------------------------------
 
 def test16_variant_change_needs_no_second_registration():
