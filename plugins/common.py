@@ -307,13 +307,21 @@ def _first_non_null(scene, ray, active):
     return ray, hit
 
 
-def sample_emitter_direction(scene, si, sample, active=True):
+def sample_emitter_direction(scene, si, sample, active=True, through_null=False):
     """Emitter sampling that includes the area emitters of lgsurfaces:
     (ds, weight, tested). As ``scene.sample_emitter_direction(si, sample,
     False, active)`` for the scene's other emitters; for an lgsurface's,
     the traced cone sample above: ``tested`` marks those lanes, whose
     visibility is part of the sample (weight 0 where occluded), so that no
-    shadow ray is needed there."""
+    shadow ray is needed there.
+
+    ``through_null``: whether the cone sample passes through ``null``
+    surfaces. False for the integrators whose shadow rays stop at any
+    surface (lg_path, lg_prb, lg_direct: Mitsuba's ``path`` tests
+    visibility with ``ray_test``, and a BSDF sample through a null surface
+    is a delta sample there, counted without MIS); True for lg_volpath,
+    whose shadow paths cross null surfaces (its caller then computes their
+    transmittance, as ``volpath``)."""
     active = mi.Bool(active)
     ds, weight = scene.sample_emitter_direction(si, sample, False, active)
     tested = mi.Bool(False)
@@ -326,7 +334,11 @@ def sample_emitter_direction(scene, si, sample, active=True):
         axis, cos_max, _ = _cone(shape, si.p)
         local = mi.warp.square_to_uniform_cone(mi.Point2f(reused, sample.y), cos_max)
         d = mi.Frame3f(axis).to_world(local)
-        ray, hit = _first_non_null(scene, si.spawn_ray(d), mine)
+        if through_null:
+            ray, hit = _first_non_null(scene, si.spawn_ray(d), mine)
+        else:
+            ray = si.spawn_ray(d)
+            hit = ray_intersect_preliminary(scene, ray, mine)
         on = mine & (hit.lg == k + 1)
         si_e = compute_interaction(scene, ray, hit, active=on)
         em = shape.emitter()

@@ -2,6 +2,8 @@
 for scenes with lgsurfaces."""
 from __future__ import annotations
 
+import contextlib
+
 import drjit as dr
 import mitsuba as mi
 from mitsuba.python.ad.integrators.common import RBIntegrator, solid_angle_to_area_jacobian
@@ -10,6 +12,27 @@ from . import common
 from .common import (Hit, compute_interaction, mis_weight, pdf_emitter_direction,
                      ray_intersect_preliminary, ray_test, sample_emitter_direction,
                      skip_area_emitters)
+
+
+@contextlib.contextmanager
+def _unwrapped():
+    """Within it, an exception whose cause chain holds a
+    :class:`~.checks.NotDifferentiableError` (Dr.Jit's loops raise
+    ``RuntimeError: dr.while_loop(): encountered an exception`` from it)
+    is raised as that error."""
+    from .checks import NotDifferentiableError
+    try:
+        yield
+    except NotDifferentiableError:
+        raise
+    except Exception as err:
+        cause, seen = err.__cause__ or err.__context__, set()
+        while cause is not None and id(cause) not in seen:
+            if isinstance(cause, NotDifferentiableError):
+                raise cause from None
+            seen.add(id(cause))
+            cause = cause.__cause__ or cause.__context__
+        raise
 
 
 class PathRecord:
@@ -209,26 +232,47 @@ class LGPRBIntegrator(RBIntegrator):
     # Mitsuba's render, forward and backward passes, after the checks (media
     # ignored) and with the infinite emitters given the scene's current
     # bounds (:func:`.common.refresh_infinite_emitters`).
+    # A parameter that lg_prb cannot differentiate (a library surface's that
+    # f computes with in Python) raises NotDifferentiableError itself: it is
+    # checked before tracing (_check_differentiable), and one raised while
+    # tracing, which Dr.Jit's loops wrap in a RuntimeError, is unwrapped
+    # (_unwrapped).
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         common.check(self, scene, sensor)
-        return super().render(scene, sensor, seed, spp, develop, evaluate)
+        self._check_differentiable(scene)
+        with _unwrapped():
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
+        self._check_differentiable(scene)
         self._pixel = self._pixel_spread(scene, sensor)
-        grad = super().render_forward(scene, params, sensor, seed, spp)
-        moving = self._moving(scene) if self.boundary else []
-        if moving:
-            grad = grad + self._silhouettes(dr.ADMode.Forward, scene, moving, sensor, seed, spp)
+        with _unwrapped():
+            grad = super().render_forward(scene, params, sensor, seed, spp)
+            moving = self._moving(scene) if self.boundary else []
+            if moving:
+                grad = grad + self._silhouettes(dr.ADMode.Forward, scene, moving, sensor, seed,
+                                                spp)
         return grad
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
+        self._check_differentiable(scene)
         self._pixel = self._pixel_spread(scene, sensor)
-        super().render_backward(scene, params, grad_in, sensor, seed, spp)
-        moving = self._moving(scene) if self.boundary else []
-        if moving:
-            self._silhouettes(dr.ADMode.Backward, scene, moving, sensor, seed, spp, grad_in)
+        with _unwrapped():
+            super().render_backward(scene, params, grad_in, sensor, seed, spp)
+            moving = self._moving(scene) if self.boundary else []
+            if moving:
+                self._silhouettes(dr.ADMode.Backward, scene, moving, sensor, seed, spp, grad_in)
+
+    @staticmethod
+    def _check_differentiable(scene):
+        """Raise :class:`~.checks.NotDifferentiableError` where an
+        lgsurface's parameter with a gradient is one that f does not hold as
+        a named constant (the shape's own check, made before any tracing)."""
+        for shape in common.lg_shapes(scene):
+            if shape.gradient_keys():
+                shape._ad_forms()
 
     # ---- Visibility: the primary silhouettes of lgsurfaces ----------------
 
@@ -410,8 +454,13 @@ class LGPRBIntegrator(RBIntegrator):
             em_pdf = dr.select(bsdf_delta_prev, 0.0,
                                pdf_emitter_direction(scene, si_prev, ds, ~bsdf_delta_prev))
             mis = mis_weight(bsdf_pdf_prev, em_pdf)
+            seen = bsdf_pdf_prev > 0
+            if dr.hint(self.hide_emitters, mode="scalar"):
+                # the environment the camera ray escapes to is hidden too
+                # (area emitters it hits were skipped: skip_area_emitters)
+                seen &= (depth > 0) | si.is_valid()
             with dr.resume_grad(when=not primal):
-                Le = β * mis * ds.emitter.eval(si, bsdf_pdf_prev > 0)
+                Le = β * mis * ds.emitter.eval(si, seen)
 
             active_next &= (depth + 1 < self.max_depth) & si.is_valid()
 

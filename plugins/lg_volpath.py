@@ -20,6 +20,28 @@ def _channel_value(spec, channel):
     return out
 
 
+def _refuse_gradients(params):
+    """Raise :class:`~.checks.NotDifferentiableError` naming the scene
+    parameters of ``params`` (``mi.SceneParameters`` or a dict) whose
+    gradients are enabled: lg_volpath computes none."""
+    from .checks import NotDifferentiableError
+    keys = list(params.keys()) if params is not None else []
+    on = [k for k in keys if _grad_enabled(params[k])]
+    names = ", ".join(f"'{k}'" for k in on) or "(none enabled)"
+    raise NotDifferentiableError(
+        f"lg_volpath does not compute gradients, but a gradient render was asked for the scene "
+        f"parameters {names}: render media gradients with Mitsuba's 'prbvolpath' on native "
+        f"shapes, lgsurface parameters with 'lg_prb' (which ignores media), or call "
+        f"dr.disable_grad() on them")
+
+
+def _grad_enabled(value):
+    try:
+        return bool(dr.grad_enabled(value))
+    except Exception:                       # (values Dr.Jit cannot inspect)
+        return False
+
+
 class LGVolpathIntegrator(mi.SamplingIntegrator):
     r"""
     .. _integrator-lg_volpath:
@@ -215,7 +237,8 @@ class LGVolpathIntegrator(mi.SamplingIntegrator):
         closed form) and through ``null`` surfaces; any other surface blocks
         it."""
         active = from_medium | from_surface
-        ds, emitted, _ = sample_emitter_direction(scene, ref, sampler.next_2d(active), active)
+        ds, emitted, _ = sample_emitter_direction(scene, ref, sampler.next_2d(active), active,
+                                                  through_null=True)
         active &= ds.pdf != 0
         emitted[~active] = 0.0
         medium = dr.select(active, medium, dr.zeros(mi.MediumPtr))
@@ -261,6 +284,14 @@ class LGVolpathIntegrator(mi.SamplingIntegrator):
     # Mitsuba's render, with the infinite emitters given the scene's current
     # bounds first (:func:`.common.refresh_infinite_emitters`).
     render = common.render
+
+    # Not differentiable: a gradient render (mi.render(scene, params), then
+    # dr.forward / dr.backward) refuses rather than return a wrong gradient.
+    def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
+        _refuse_gradients(params)
+
+    def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
+        _refuse_gradients(params)
 
     def aov_names(self):
         return []

@@ -3,8 +3,9 @@ writes DIR/results.json, DIR/charts/ and DIR/BENCHMARKS.md.
 
 The sections, in order: accuracy on primary rays and the stability suite
 (:mod:`lgshape.bench.accuracy`), speed (:mod:`lgshape.bench.speed`), scale
-(:mod:`lgshape.bench.scale`) and temporal stability
-(:mod:`lgshape.bench.temporal`); the report and the accuracy charts come
+(:mod:`lgshape.bench.scale`), temporal stability
+(:mod:`lgshape.bench.temporal`) and conformance against Mitsuba's
+integrators (:mod:`lgshape.bench.conformance`); the report and the accuracy charts come
 from :mod:`lgshape.bench.report`.
 """
 from __future__ import annotations
@@ -18,7 +19,7 @@ import time
 
 from . import stability
 from ..surfaces import LIBRARY
-from . import scale, speed, temporal
+from . import conformance, scale, speed, temporal
 from .accuracy import (DEFAULT_LG, FULL, QUICK, accuracy_subset, bench_surface,
                        stability_runners)
 from .common import VARIANT, finite, git_commit, machine, stderr_log
@@ -45,6 +46,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="skip the scale section (cost against the number of primitives)")
     p.add_argument("--no-temporal", dest="temporal", action="store_false",
                    help="skip the temporal-stability section (animation)")
+    p.add_argument("--no-conformance", dest="conformance", action="store_false",
+                   help="skip the conformance section (the lg integrators against Mitsuba's, "
+                   "pixel by pixel, on scenes with native twins)")
     return p
 
 
@@ -86,6 +90,8 @@ def main(argv=None) -> int:
     if args.temporal:
         results["temporal"] = temporal.run(log, quick=args.quick)
         temporal.chart(results["temporal"], os.path.join(args.out, "charts", "temporal.png"))
+    if args.conformance:
+        results["conformance"] = conformance.run(log, quick=args.quick)
     written = charts(records, args.out)
     results["meta"]["seconds"] = round(time.perf_counter() - t_start, 1)
     with open(os.path.join(args.out, "results.json"), "w") as fh:
@@ -93,7 +99,9 @@ def main(argv=None) -> int:
     with open(os.path.join(args.out, "BENCHMARKS.md"), "w") as fh:
         sections = [speed.report(results["speed"]) if results.get("speed") else [],
                     scale.report(results["scale"], meta["res"]) if results.get("scale") else [],
-                    temporal.report(results["temporal"]) if results.get("temporal") else []]
+                    temporal.report(results["temporal"]) if results.get("temporal") else [],
+                    conformance.report(results["conformance"])
+                    if results.get("conformance") else []]
         fh.write(report(results, command, written, sections, DEFAULT_LG))
     log(f"wrote {os.path.join(args.out, 'results.json')}, BENCHMARKS.md and {len(written)} charts")
     return 0
