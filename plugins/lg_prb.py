@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 from mitsuba.python.ad.integrators.common import RBIntegrator, solid_angle_to_area_jacobian
 
-from . import common
+from . import common, frozen
 from .common import (Hit, compute_interaction, mis_weight, pdf_emitter_direction,
                      ray_intersect_preliminary, ray_test, sample_emitter_direction,
                      skip_area_emitters)
@@ -241,13 +241,14 @@ class LGPRBIntegrator(RBIntegrator):
         common.check(self, scene, sensor)
         self._check_differentiable(scene)
         with _unwrapped():
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
+            return frozen.render(self, RBIntegrator.render, scene, sensor,
+                                 seed, spp, develop, evaluate)
 
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
         self._check_differentiable(scene)
         self._pixel = self._pixel_spread(scene, sensor)
-        with _unwrapped():
+        with _unwrapped(), common.traced_searches(scene):
             grad = super().render_forward(scene, params, sensor, seed, spp)
             moving = self._moving(scene) if self.boundary else []
             if moving:
@@ -259,7 +260,7 @@ class LGPRBIntegrator(RBIntegrator):
         common.check(self, scene, sensor)
         self._check_differentiable(scene)
         self._pixel = self._pixel_spread(scene, sensor)
-        with _unwrapped():
+        with _unwrapped(), common.traced_searches(scene):
             super().render_backward(scene, params, grad_in, sensor, seed, spp)
             moving = self._moving(scene) if self.boundary else []
             if moving:

@@ -128,6 +128,15 @@ def test02_quick_run_render_and_latency(quick):
     assert all(m["mse"] > 0 and m["seconds"] > 0 for m in e.values())
     md = res["media"]["methods"]
     assert all(m["seconds"] > 0 and m["image_mean"] > 0 for m in md.values())
+    # host time: the records, no kernel compiled once warm (kernel history),
+    # and frozen, traced and native renders of one scene agree in the mean
+    ho = res["host"]["methods"]
+    assert set(ho) == {"lg_path", "lg_path, traced", "path, native sphere"}
+    for m in ho.values():
+        assert m["seconds"] > 0 and m["kernel_s"] >= 0 and m["compiled_after_warmup"] == 0
+        assert m["ratio"] > 0
+    assert ho["lg_path"]["image_mean"] == pytest.approx(ho["path, native sphere"]["image_mean"],
+                                                        rel=0.05)
     k = res["compile"]
     for key in S.PROBES:
         assert "error" not in k[key], k[key]

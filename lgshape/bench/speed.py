@@ -59,6 +59,12 @@ mean), interleaved; the walls' albedo in both, and the tangle's
 ``to_world`` too for lg_prb. Targets: lg_prb's gradient / primal ratio no
 worse than prb's, and at most :data:`TARGET_GRADIENT`.
 
+**Host time per render** (:func:`bench_host`): the emitter scene at 64 x 64,
+64 spp under lg_path (frozen renders, and every render traced) against
+Mitsuba's ``path`` with the native sphere, interleaved; each render's
+kernel time from Dr.Jit's kernel history, the rest the host's. Target:
+lg_path / path at most :data:`TARGET_HOST`.
+
 **First-image latency**: the default scene (``make render``'s,
 ``scenes/cornell.xml``) in a subprocess (:mod:`lgshape.bench.probe`) with
 ``HOME`` set to a fresh
@@ -105,6 +111,8 @@ METHODS = ("lgshape", "sphere_trace", "mesh")
 TARGET_SPHERE, TARGET_SPHERE_ON_SPHERE, TARGET_MESH = 2.0, 1.0, 1.0
 #: lg_path's render time over path's on the mesh, at most this.
 TARGET_CORNELL = 1.5
+#: lg_path's time a small render (mostly the host's) over path's, at most this.
+TARGET_HOST = 2.0
 
 #: Shadow-ray origins: this many box diagonals off the surface along the normal.
 SHADOW_OFFSET = 1e-3
@@ -721,6 +729,80 @@ def bench_emitters(cfg: SpeedConfig, log, seeds=4):
     return rec
 
 
+def bench_host(cfg: SpeedConfig, log, rounds=9):
+    """Time per render at a size where the host's work (tracing the
+    integrator's Python, launching kernels) is most of it: the emitter scene
+    (:func:`emitter_scene`) at 64 x 64, 64 spp, under lg_path with the
+    lamp an lgsurface, as it renders (frozen renders, :mod:`lgshape.plugins.frozen`)
+    and with every render traced (``LGSHAPE_NO_FREEZE=1``), against Mitsuba's
+    ``path`` with the native emitting sphere. Each method renders three times
+    to warm up (trace, record), then the methods take turns for ``rounds``
+    rounds (a new seed each render). Per method: the median seconds a
+    render, the median of its kernels' execution time (Dr.Jit's kernel
+    history) and the difference, the host's share; the count of kernels
+    compiled after the warm-up (0 expected)."""
+    import drjit as dr
+    import mitsuba as mi
+    res, spp = 64, 64
+    lamp = {"type": "lgsurface", "surface": "sphere", "radius": 0.3,
+            "to_world": mi.ScalarTransform4f().translate([0, 0.4, 0])}
+    native = {"type": "sphere", "radius": 0.3, "center": [0, 0.4, 0]}
+    methods = {"lg_path": (lamp, "lg_path", False), "lg_path, traced": (lamp, "lg_path", True),
+               "path, native sphere": (native, "path", False)}
+    scenes = {k: emitter_scene(l, i, res, spp, max_depth=3) for k, (l, i, _) in methods.items()}
+    flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    saved = os.environ.get("LGSHAPE_NO_FREEZE")
+    samples = {k: {"total": [], "kernels": [], "compiled": 0, "mean": []} for k in methods}
+    seed = 0
+
+    def once(key, timed):
+        nonlocal seed
+        seed += 1
+        os.environ["LGSHAPE_NO_FREEZE"] = "1" if methods[key][2] else "0"
+        dr.kernel_history()
+        t0 = time.perf_counter()
+        img = mi.render(scenes[key], seed=seed)
+        dr.eval(img)
+        dr.sync_thread()
+        t = time.perf_counter() - t0
+        hist = [h for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT]
+        if timed:
+            rec = samples[key]
+            rec["total"].append(t)
+            rec["kernels"].append(sum(h["execution_time"] for h in hist) / 1e3)
+            rec["compiled"] += sum(1 for h in hist if not h["cache_hit"])
+            rec["mean"].append(float(np.mean(np.asarray(img)[..., :3])))
+
+    try:
+        for key in methods:
+            for _ in range(3):
+                once(key, False)
+        keys = list(methods)
+        for r in range(rounds):
+            for j in range(len(keys)):
+                once(keys[(j + r) % len(keys)], True)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+        if saved is None:
+            os.environ.pop("LGSHAPE_NO_FREEZE", None)
+        else:
+            os.environ["LGSHAPE_NO_FREEZE"] = saved
+    out = {"res": res, "spp": spp, "rounds": rounds, "methods": {}}
+    for key, rec in samples.items():
+        total, kern = float(np.median(rec["total"])), float(np.median(rec["kernels"]))
+        out["methods"][key] = {"seconds": total, "kernel_s": kern, "host_s": total - kern,
+                               "compiled_after_warmup": rec["compiled"],
+                               "image_mean": float(np.mean(rec["mean"])), "samples": rec["total"]}
+        log(f"host time {key}: {total * 1e3:.1f} ms a render, kernels {kern * 1e3:.1f} ms, "
+            f"{rec['compiled']} kernels compiled after the warm-up")
+    base = out["methods"]["path, native sphere"]
+    for key, m in out["methods"].items():
+        m["ratio"] = paired_ratio(m["samples"], base["samples"])
+    out["met"] = out["methods"]["lg_path"]["ratio"] <= TARGET_HOST
+    return out
+
+
 def textured_radiance():
     """The textured radiance of the emitter benchmark: a checkerboard of
     radiance 0.5 and 6 on a 12 x 6 grid of the surface's uv."""
@@ -854,6 +936,7 @@ def run(log=None, quick=False, surfaces=None, cornell=True, compile_latency=True
         out["gradients"] = bench_gradients(cfg, log, meshes)
         out["emitters"] = bench_emitters(cfg, log)
         out["media"] = bench_media(cfg, log)
+        out["host"] = bench_host(cfg, log)
     meshes.clear()
     if compile_latency:
         out["compile"] = bench_compile(cfg, log, variant)
@@ -1095,6 +1178,23 @@ def report(results, chart_path="charts/speed.png") -> list[str]:
             L.append("The same with a textured radiance (a checkerboard of 0.5 and 6 on a "
                      "12 x 6 grid of uv; the reference renders it the same way):\n")
             L += noise_table(em["textured"])
+    ho = results.get("host")
+    if ho:
+        L.append("### Host time per render\n")
+        L.append(f"The emitter scene at {ho['res']} x {ho['res']}, {ho['spp']} spp (a size where "
+                 "the host's work is most of a render): lg_path with the lamp an lgsurface, as "
+                 "it renders (frozen renders) and with every render traced "
+                 "(`LGSHAPE_NO_FREEZE=1`), against Mitsuba's path with the native sphere; "
+                 f"medians of {ho['rounds']} interleaved rounds after three warm-up renders each. "
+                 "`kernels ms` is the kernels' execution time from Dr.Jit's kernel history; "
+                 f"the rest is the host's. Target: lg_path / path at most {TARGET_HOST:g}: "
+                 f"{'met' if ho['met'] else 'not met'}.\n")
+        L += _table(("method", "ms a render", "kernels ms", "host ms", "/ path",
+                     "kernels compiled after warm-up", "image mean"),
+                    [(key, f"{m['seconds'] * 1e3:.1f}", f"{m['kernel_s'] * 1e3:.1f}",
+                      f"{m['host_s'] * 1e3:.1f}", f"{m['ratio']:.2f}",
+                      str(m["compiled_after_warmup"]), f"{m['image_mean']:.4f}")
+                     for key, m in ho["methods"].items()])
     md = results.get("media")
     if md:
         L.append("### Media: lg_volpath against volpath\n")
