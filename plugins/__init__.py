@@ -195,6 +195,7 @@ def use_variant(variant):
                            f"{', '.join(mi.variants())}")
     if variant.startswith("cuda_"):
         _check_cuda(variant)
+    previous = mi.variant()
     try:
         mi.set_variant(variant)
     except Exception as err:  # e.g. a cuda_ variant without a usable GPU
@@ -202,6 +203,8 @@ def use_variant(variant):
     try:
         register_plugins()
     except RuntimeError as err:
+        if previous is not None:            # (a refused variant is not left set)
+            mi.set_variant(previous)
         raise VariantError(str(err)) from None
     return mi
 

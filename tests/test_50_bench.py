@@ -261,3 +261,14 @@ def test05_scale_worker_and_report():
     text = "\n".join(scale.report(recs, 48))
     assert "## Scale" in text and "| union | 10 | tables |" in text
     assert "build at N=1000 (s)" in text
+
+
+@pytest.mark.parametrize("variant, says", [("scalar_rgb", "scalar variant"),
+                                           ("no_such_variant", "unknown variant")])
+def test11_bench_refuses_a_variant_it_cannot_use(variant, says, tmp_path, capsys):
+    """``lgshape bench --variant``: a variant lgshape cannot render with ends
+    the run before any section, with exit status 2 and the reason."""
+    from lgshape.cli import main
+    assert main(["bench", "--quick", "--variant", variant, "--out", str(tmp_path)]) == 2
+    assert says in capsys.readouterr().err
+    assert not (tmp_path / "results.json").exists()

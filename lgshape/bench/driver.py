@@ -36,6 +36,10 @@ def _parser() -> argparse.ArgumentParser:
                    "BENCHMARKS.md)")
     p.add_argument("--surfaces", nargs="+", choices=sorted(LIBRARY), metavar="NAME",
                    help="only these library surfaces")
+    p.add_argument("--variant", default=VARIANT,
+                   help=f"the Mitsuba variant, a JIT one (default {VARIANT}; cuda_ad_rgb on a "
+                   "GPU): the speed and conformance sections render with it, the ray queries "
+                   "run on its backend")
     p.add_argument("--no-stability", dest="stability", action="store_false",
                    help="skip the stability suite")
     p.add_argument("--no-speed", dest="speed", action="store_false",
@@ -58,8 +62,12 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     cfg = QUICK if args.quick else FULL
     surfaces = tuple(args.surfaces) if args.surfaces else cfg.surfaces
-    import mitsuba as mi                # heavy: imported once the arguments are read
-    mi.set_variant(VARIANT)
+    from ..plugins import VariantError, use_variant     # (imports Mitsuba: heavy)
+    try:
+        use_variant(args.variant)
+    except VariantError as err:
+        print(f"lgshape bench: error: {err}", file=sys.stderr)
+        return 2
     command = "lgshape bench " + " ".join(argv)
     t_start = time.perf_counter()
     log = stderr_log(t_start)
@@ -68,7 +76,7 @@ def main(argv=None) -> int:
             "machine": machine(), "git": git_commit(), "quick": bool(args.quick), "res": cfg.res,
             "repeats": cfg.repeats, "min_sample": cfg.min_sample, "stride": cfg.stride,
             "accuracy_rays": len(accuracy_subset(cfg.res, cfg.stride)),
-            "scan_steps": cfg.scan_steps, "variant": VARIANT,
+            "scan_steps": cfg.scan_steps, "variant": args.variant,
             "depth_error_unit": "box diagonals", "normal_error_unit": "degrees, between lines",
             "stability_tolerance": stability.TOLERANCE}
     records = []
@@ -82,7 +90,8 @@ def main(argv=None) -> int:
     os.makedirs(os.path.join(args.out, "charts"), exist_ok=True)
     if args.speed:
         results["speed"] = speed.run(log, quick=args.quick,
-                                     surfaces=tuple(args.surfaces) if args.surfaces else None)
+                                     surfaces=tuple(args.surfaces) if args.surfaces else None,
+                                     variant=args.variant)
         speed.chart(results["speed"], os.path.join(args.out, "charts", "speed.png"))
     if args.scale:
         results["scale"] = scale.run(log, quick=args.quick, res=cfg.res, repeats=cfg.repeats)
