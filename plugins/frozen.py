@@ -23,8 +23,9 @@ What a recording may depend on, and how a change is noticed:
   rendered traced, not frozen; it is replayed only once a traced render
   left the key unchanged (the caches were warm).
 
-Renders with gradients are never frozen (``dr.grad_enabled`` on lgshape's
-arrays, or gradient passes, which do not come here). Set
+Renders that record derivatives are never frozen: only a render with
+gradients suspended (``mi.render``'s primal render) is; gradient passes
+(Mitsuba's default ones render again with gradients on) are traced. Set
 ``LGSHAPE_NO_FREEZE=1`` to trace every render.
 """
 from __future__ import annotations
@@ -122,6 +123,16 @@ class _Recordings:
         self.fn = dr.freeze(run, limit=LIMIT, warn_after=2 ** 30)
 
 
+def _recording_gradients() -> bool:
+    """Is Dr.Jit recording derivatives here (gradients not suspended)?
+    ``mi.render`` runs the primal render with them suspended; Mitsuba's
+    default gradient passes render again with them on, and that render
+    must be attached to the scene's parameters, so it is traced."""
+    probe = mi.Float(0)
+    dr.enable_grad(probe)
+    return dr.grad_enabled(probe)
+
+
 def _sampler(scene, sensor):
     return (scene.sensors()[sensor] if isinstance(sensor, int) else sensor).sampler()
 
@@ -152,9 +163,9 @@ def render(integrator, base, scene, sensor=0, seed=0, spp=0, develop=True, evalu
         dr.eval()
         if not (enabled() and develop and dr.is_jit_v(mi.Float)):
             return base(integrator, scene, sensor, seed, spp, develop, evaluate)
-        arrays, key = state(scene, integrator)
-        if dr.grad_enabled(arrays):
+        if _recording_gradients():
             return base(integrator, scene, sensor, seed, spp, develop, evaluate)
+        arrays, key = state(scene, integrator)
         rec = integrator.__dict__.get(_SLOT)
         if rec is None:
             rec = integrator.__dict__[_SLOT] = _Recordings(base, integrator)

@@ -149,3 +149,23 @@ def test03_gradients_after_frozen_renders(no_freeze):
         dr.backward(dr.mean(img, axis=None))
         grads.append(float(dr.grad(p["torus.R"])[0]))
     assert grads[0] != 0 and grads[0] == grads[1]
+
+
+@pytest.mark.parametrize("integrator", ["lg_path", "lg_direct"])
+def test04_plain_ad_after_frozen_renders(integrator, no_freeze):
+    """Mitsuba's default gradient pass (its render recorded with gradients
+    on, then ``backward_from``) after frozen renders: the BSDF albedo's
+    derivative as with freezing off, not zero (that render is traced)."""
+    grads = []
+    for off in (False, True):
+        no_freeze(off)
+        s = scene({"type": integrator})
+        for k in range(4):
+            render(s, k)
+        p = mi.traverse(s)
+        key = "torus.bsdf.reflectance.value"
+        dr.enable_grad(p[key])
+        p.update()
+        dr.backward(dr.mean(dr.ravel(mi.render(s, p, seed=3))))
+        grads.append(np.array(dr.grad(p[key])))
+    assert np.all(grads[0] != 0) and np.array_equal(grads[0], grads[1])
