@@ -186,7 +186,10 @@ def _distance(kind: str):
         dx, dy, dz = _centre_offset()
         q = [abs(v) - param(3 + i) for i, v in enumerate((dx, dy, dz))]
         outside = sqrt(sum(_sq(maximum(v, 0.0)) for v in q[1:]) + _sq(maximum(q[0], 0.0)))
-        return outside + minimum(maximum(q[0], q[1], q[2]), 0.0) - param(6)
+        # min(0, max q): at max q = 0 (a sharp box's faces) min's slope is
+        # max q's (its rule takes the second argument's at a tie), and the
+        # outside term's is 0 there (tables.point_slope): grad f = +-e_i
+        return outside + minimum(0.0, maximum(q[0], q[1], q[2])) - param(6)
     if kind == "torus":
         dx, dy, dz = _centre_offset()
         return sqrt(_sq(sqrt(_sq(dx) + _sq(dy)) - param(3)) + _sq(dz)) - param(4)

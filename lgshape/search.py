@@ -548,6 +548,7 @@ def _refine(ev: Evaluator, lane: _Lane, max_it) -> _Lane:
     distance to the root |F| / min |g|, is below the tolerance. A loop of
     its own after the search, with only its own state."""
     R = ev.rays
+    Float64 = ev.K.m64.Float
 
     def body(outcome, t, t_lo, t_hi, evals, iters):
         refining = outcome == BRACKET
@@ -560,7 +561,13 @@ def _refine(ev: Evaluator, lane: _Lane, max_it) -> _Lane:
         # is below tol, t is within tol already: take its Newton step kept
         # in the bracket, never the safeguard's bisection midpoint
         close = (F == 0) | (dr.abs(F) < lane.g_min * R.tol)
-        t_next = dr.select(F == 0, t, dr.select(close, dr.clip(t - F / g, r_lo, r_hi), t_next))
+        # that step only where g is a slope the bracket allows (its sign,
+        # -s_lo, and |g| >= min |g|): then it stays within tol of the root.
+        # Else (g NaN, 0 or off: the point slope at a singular point of
+        # the distance, 0 / 0 on a torus's axis) t itself, within tol
+        g_ok = (g * Float64(lane.s_lo) < 0) & (dr.abs(g) >= lane.g_min)
+        t_close = dr.select(g_ok, dr.clip(t - F / g, r_lo, r_hi), t)
+        t_next = dr.select(F == 0, t, dr.select(close, t_close, t_next))
         conv = refining & (close | (dr.abs(t_next - t) < R.tol) | (r_hi - r_lo < R.tol))
         iters = iters + dr.select(refining, 1, 0)
         evals = evals + dr.select(refining, 1, 0)

@@ -37,6 +37,7 @@ treatment as one built with :mod:`lgshape.primitives`.
 """
 from __future__ import annotations
 
+import functools
 import math
 import re
 from dataclasses import dataclass, field
@@ -50,7 +51,7 @@ from .expr import evaluate, evaluate_interval, evaluate_with_error
 from .expr import node as N
 from .expr.diff import DX, DY, DZ, derivative
 from .expr.node import Expr, const, maximum, minimum, named, topological, var
-from .expr.quadratic import Quad, evaluate_quadratic, quad_env, quad_range
+from .expr.quadratic import Quad, _norm_quotient, evaluate_quadratic, quad_env, quad_range
 from .grid import row_slots
 
 #: Operands of one structure needed before an n-ary node becomes a table.
@@ -92,6 +93,48 @@ def smin_below(n, k: float):
 
 def param(q: int) -> Expr:
     return var(f"p{q}")
+
+
+@functools.lru_cache(maxsize=256)
+def point_slope(g: Expr) -> Expr:
+    """g (a derivative) for point values at the singular points of the
+    distances in it: each slope A / (c sqrt(U)) of a distance |v| =
+    sqrt(v_1^2 + ... + v_k^2) (sqrt's derivative rule, as
+    :func:`lgshape.expr.quadratic._norm_quotient` parses it) becomes
+    A / (c sqrt(U) + (1 - step(U))): the same value where U > 0 (the added
+    term is exactly 0), and A / 1 = 0 where U = 0 (every term of A has a
+    factor v_i, all 0 there; where U underflows to 0, as tiny as they are)
+    instead of 0 / 0. On a torus's axis, a
+    capsule's segment, a sphere's centre, a box's inner box or a sharp
+    box's faces, the slope of |v| along a ray is 0 where it exists (the ray
+    along the axis: |v| is 0 all along it) and is else a kink between -|v'|
+    and |v'|, whose middle is 0. So a row whose kernel is 0 there (a blend's
+    torus on its axis: 0 times 0 / 0 was NaN) adds 0 to F's slope and to
+    grad f, and the winning row of a union keeps its slope. These values
+    steer Newton's steps and give normals; the proofs take the slope's
+    bounds from the unchanged g (its forms bound the quotient by
+    Cauchy-Schwarz where U's range reaches 0)."""
+    out = {}
+    for n in topological([g]):
+        if n.op in ("const", "named", "var"):
+            out[id(n)] = n
+            continue
+        args = [out[id(a)] for a in n.args]
+        if n.op == "div" and _norm_quotient(n) is not None:
+            num, den = args
+            # the sqrt factor of the divisor (its other factors are constants)
+            stack, root = [n.args[1]], None
+            while stack:
+                e = stack.pop()
+                if e.op in ("mul", "neg"):
+                    stack.extend(e.args)
+                elif e.op == "sqrt":
+                    root = e
+            U = out[id(root.args[0])]
+            out[id(n)] = N.div(num, N.add(den, N.sub(1.0, N.step(U))))
+        else:
+            out[id(n)] = n if all(a is b for a, b in zip(args, n.args)) else _rebuild(n, args)
+    return out[id(g)]
 
 
 @dataclass
@@ -842,8 +885,9 @@ class DeviceTables:
             lo64 = np.where(bound > 0, np.nextafter(P - bound, -np.inf), P)
             hi64 = np.where(bound > 0, np.nextafter(P + bound, np.inf), P)
             lo32, hi32 = _round_down32(lo64), _round_up32(hi64)
+            g_t = derivative(t, seeds)
             self.groups.append(_DeviceGroup(
-                aggregate=j, template=t, g=derivative(t, seeds),
+                aggregate=j, template=t, g=g_t, gp=point_slope(g_t),
                 start=UInt32(start.astype(np.uint32)),
                 # float32 values are gathered once, as float32, for both
                 p64=None if exact else [self.Float64(np.ascontiguousarray(P[:, q]))
@@ -857,6 +901,7 @@ class DeviceTables:
         self.outer, _ = localize_template(tf.outer, ct, columns=False)
         gseeds = dict(seeds, **{f"A{j}": var(f"gA{j}") for j in range(len(tf.aggregates))})
         self.outer_g = derivative(self.outer, gseeds)
+        self.outer_gp = point_slope(self.outer_g)
         self.combines = [(a.combine, derivative(a.combine, {"a": var("ga"), "b": var("gb")}))
                          for a in tf.aggregates]
 
@@ -916,7 +961,7 @@ class DeviceTables:
                         if grp.err[q] is not None:
                             perr[f"p{q}"] = grp.err[q]
                     tv, te = evaluate_with_error(grp.template, penv, perr, m64, safety=False)
-                    tg = [evaluate(grp.g, {**penv, **dd}, m64) for dd in dirs]
+                    tg = [evaluate(grp.gp, {**penv, **dd}, m64) for dd in dirs]
                     cv, ce = evaluate_with_error(comb, {"a": v, "b": tv}, {"a": ev, "b": te}, m64,
                                                  safety=False)
                     cg = [evaluate(comb_g, {"a": v, "b": tv, "ga": ga, "gb": gb}, m64)
@@ -937,7 +982,7 @@ class DeviceTables:
             for k in range(nd):
                 grads[k][f"gA{j}"] = dr.select(first, 0.0, gs[k])
         F, eF = evaluate_with_error(self.outer, {**env, **vals}, {**err, **errs}, m64)
-        g = [evaluate(self.outer_g, {**env, **vals, **dd, **gk}, m64) for dd, gk in zip(dirs, grads)]
+        g = [evaluate(self.outer_gp, {**env, **vals, **dd, **gk}, m64) for dd, gk in zip(dirs, grads)]
         return F, eF, g
 
     # -- both at once ---------------------------------------------------------------
@@ -980,7 +1025,7 @@ class DeviceTables:
                             perr[f"p{q}"] = grp.err[q]
                     # the point
                     tv, te = evaluate_with_error(grp.template, penv, perr, m64, safety=False)
-                    tg = evaluate(grp.g, {**penv, **dd}, m64)
+                    tg = evaluate(grp.gp, {**penv, **dd}, m64)
                     cv, ce = evaluate_with_error(comb, {"a": v, "b": tv}, {"a": ev, "b": te},
                                                  m64, safety=False)
                     cg = evaluate(comb_g, {"a": v, "b": tv, "ga": gv, "gb": tg}, m64)
@@ -1014,7 +1059,7 @@ class DeviceTables:
             agrads[f"gA{j}"] = iv.Interval(dr.select(first, 0.0, rg.lo),
                                            dr.select(first, 0.0, rg.hi))
         F, eF = evaluate_with_error(self.outer, {**env, **vals}, {**err, **errs}, m64)
-        g = evaluate(self.outer_g, {**env, **vals, **dd, **grads}, m64)
+        g = evaluate(self.outer_gp, {**env, **vals, **dd, **grads}, m64)
         ienv = {v: quad_range(seg, qenv0[v]) for v in ("x", "y", "z", *LOCAL.values())}
         ienv.update({k: qenv0[k] for k in ("dx", "dy", "dz")})
         Fi, gi = evaluate_interval([self.outer, self.outer_g], {**ienv, **avals, **agrads}, m)
@@ -1025,7 +1070,8 @@ class DeviceTables:
 class _DeviceGroup:
     aggregate: int
     template: Expr
-    g: Expr
+    g: Expr              # the template's slope (its forms and intervals)
+    gp: Expr             # the same for point values (point_slope: 0 / 0 is 0)
     start: object
     p64: list
     p32: list

@@ -476,7 +476,9 @@ class Surface:
         if K.tables is not None:
             _, _, g = table_point(K, p, with_gradient=True)
             return type(p)(*(Float(v) for v in g))
-        gx, gy, gz = evaluate(list(gradient(self.expr)), {"x": p.x, "y": p.y, "z": p.z}, K.m)
+        # (0 / 0 in a distance's slope read as 0: tables.point_slope)
+        gx, gy, gz = evaluate([tablemod.point_slope(g) for g in gradient(self.expr)],
+                              {"x": p.x, "y": p.y, "z": p.z}, K.m)
         zero = dr.zeros(Float, dr.width(p))     # a constant component: one per point
         return type(p)(gx + zero, gy + zero, gz + zero)
 

@@ -9,7 +9,13 @@ path* (f a polynomial of degree 3 to 8: each ray's polynomial) and the
 *sinusoid path* (f a sum of products of sines and cosines of affine
 functions). Positions far from the origin, whole scenes scaled by 1e-3 and
 1e3, tiny parts next to big ones, near-touching parts, grazing rays, rays
-from inside and on the surface, and t windows (t_min, t_max).
+from inside and on the surface, t windows (t_min, t_max), and rays through
+the singular points of the distances (``table_singular_*``: along and
+across a torus's axis and core circle, a capsule's segment, a box's centre
+lines, centre planes and inner edges, a sphere's centre; in unions, smooth
+unions and blends, written with the builders or as text, in normal boxes
+and in flat ones; ``table_singular_issue`` holds the ray of a reported miss
+down a torus's axis in a blend).
 
 Oracles (float64, from the very float32 rays the kernel gets):
 
@@ -1447,6 +1453,235 @@ def _twin(rng, n):
     d2 = np.float32(unit(rng.normal(size=(len(o2), 3))))
     o, d = np.concatenate([o1, o2]), np.concatenate([d1, d2])
     return check_windows(surf, F, o, d, lambda o_, d_: union_oracle(s, o_, d_, surf.lo, surf.hi))
+
+
+# -- rays through the singular points of the distances ---------------------------
+#
+# Where a primitive's distance has no slope (a torus's axis and core circle,
+# a capsule's segment, a box's centre lines, centre planes and inner edges,
+# a sphere's centre), its derivative rule reads 0 / 0 (sqrt at 0) and the
+# interval rules of its slope are unbounded. Rays along and across those
+# sets, in unions, smooth unions and blends, in a normal box and in a flat
+# one (a slab 2^-9 thick about the plane z = 0 that holds every part's
+# centre). Every value is a multiple of 2^-10 and every direction one of
+# 2^-2, so the rays meet the singular points exactly (no float32 rounding
+# moves them off).
+
+def dyadic(v, bits=10):
+    """v rounded to a multiple of 2^-bits (exact in float32 near 1, and so
+    are the sums and differences of such values that the rays use)."""
+    return np.round(np.asarray(v, np.float64) * 2.0 ** bits) / 2.0 ** bits
+
+
+#: The flat box's half thickness about z = 0 (2^-10, as the issue's 1.2e-3).
+FLAT_HALF = 2.0 ** -10
+
+
+def singular_scene(rng, n=4, flat=False, blend=False, spread=0.35):
+    """n primitives of each kind clustered about the origin (so that one's
+    singular set runs through the others), every value dyadic: spheres;
+    capsules, half of them along an axis; boxes, half sharp (a blend's all
+    rounded: their rounding is the radius of influence); tori (axes along z,
+    as the builder's). ``flat``: every centre, capsule and torus in the
+    plane z = 0. ``blend``: radii of influence twice the sizes."""
+    g = 2.0 if blend else 1.0
+
+    def at(k):
+        c = rng.uniform(-spread, spread, (k, 3))
+        if flat:
+            c[:, 2] = 0.0
+        return dyadic(c)
+    sph = np.column_stack([at(n), dyadic(g * rng.uniform(0.1, 0.25, n))])
+    a = at(n)
+    axis = np.eye(3)[rng.integers(0, 2 if flat else 3, n)] * rng.choice([-1.0, 1.0], (n, 1))
+    free = unit(rng.normal(size=(n, 3)) * (np.array([1.0, 1.0, 0.0]) if flat else 1.0))
+    dirs = np.where((np.arange(n) % 2 == 0)[:, None], axis, free)
+    b = dyadic(a + dirs * rng.uniform(0.2, 0.5, (n, 1)))
+    cap = np.column_stack([a, b, dyadic(g * rng.uniform(0.04, 0.1, n))])
+    h = dyadic(rng.uniform(0.08, 0.25, (n, 3)))
+    rr = dyadic(h.min(1) * rng.uniform(0.5 if blend else 0.2, 0.9, n))
+    if not blend:
+        rr = np.where(np.arange(n) % 2 == 0, 0.0, rr)
+    box = np.column_stack([at(n), h, np.maximum(rr, 0.0 if not blend else 2.0 ** -10)])
+    R = dyadic(rng.uniform(0.1, 0.25, n))
+    r = np.minimum(dyadic(R * rng.uniform(0.15, 0.6 if blend else 0.45, n)), R - 2.0 ** -10)
+    tor = np.column_stack([at(n), R, np.maximum(r, 2.0 ** -10)])
+    s = Scene.make(sph, cap, box, tor)
+    s.check_parts()
+    return s
+
+
+def flat_box(bbox):
+    """The flat box: the builder's box in x and y, z in +-FLAT_HALF."""
+    lo, hi = np.array(bbox[0], np.float64), np.array(bbox[1], np.float64)
+    lo[2], hi[2] = -FLAT_HALF, FLAT_HALF
+    return tuple(lo), tuple(hi)
+
+
+def _quarter_dirs(rng, m, flat):
+    """m directions with components in {-1, -3/4, ..., 1} (exact; not unit),
+    none zero; ``flat``: in the plane z = 0."""
+    d = rng.integers(-4, 5, (m, 3)) / 4.0
+    if flat:
+        d[:, 2] = 0.0
+    zero = ~d.any(1)
+    d[zero, 0] = 1.0
+    return d
+
+
+def _axis_dirs(rng, m, flat, along=None):
+    """m axis directions (+-e_i; ``along``: that axis only; ``flat``: z
+    for rays across the slab, x or y in it, half each)."""
+    if along is not None:
+        i = np.full(m, along)
+    elif flat:
+        i = np.where(rng.uniform(size=m) < 0.5, 2, rng.integers(0, 2, m))
+    else:
+        i = rng.integers(0, 3, m)
+    return np.eye(3)[i] * rng.choice([-1.0, 1.0], (m, 1))
+
+
+def singular_points(scene: Scene, rng, m, flat):
+    """Singular points of the scene's distances with the directions that
+    run along their singular set (axis-parallel) or cross it (oblique):
+    {group: (points, directions)}, about m per group."""
+    out = {}
+
+    def pick(rows):
+        return rows[rng.integers(0, len(rows), m)]
+    sph, cap, box, tor = (pick(getattr(scene, k)) for k in ("sphere", "capsule", "box", "torus"))
+    # a sphere's centre: along the axes, and obliquely
+    out["sphere_centre_axis"] = (sph[:, :3], _axis_dirs(rng, m, flat))
+    out["sphere_centre_oblique"] = (sph[:, :3], _quarter_dirs(rng, m, flat))
+    # a torus's axis: along it (through the slab where flat), across it
+    # (through the centre, or above and below it), and its core circle
+    w = np.zeros(m) if flat else dyadic(tor[:, 4] * rng.uniform(-2.0, 2.0, m))
+    axis_pt = tor[:, :3] + np.column_stack([np.zeros((m, 2)), w])
+    out["torus_axis_along"] = (axis_pt, _axis_dirs(rng, m, False, along=2))
+    out["torus_axis_across"] = (axis_pt, _quarter_dirs(rng, m, flat))
+    k = rng.integers(0, 4, m)
+    ring = np.array([[1.0, 0, 0], [0, 1.0, 0], [-1.0, 0, 0], [0, -1.0, 0]])[k]
+    tangent = np.array([[0, 1.0, 0], [-1.0, 0, 0], [0, -1.0, 0], [1.0, 0, 0]])[k]
+    core = tor[:, :3] + tor[:, 3:4] * ring
+    dc = np.where((rng.uniform(size=m) < 0.5)[:, None], np.array([0, 0, 1.0]), tangent)
+    out["torus_core_axis"] = (core, dc * rng.choice([-1.0, 1.0], (m, 1)))
+    out["torus_core_oblique"] = (core, _quarter_dirs(rng, m, flat))
+    # a capsule's segment: along it (its ends and inner points), across it
+    s = rng.choice([0.0, 0.25, 0.5, 0.75, 1.0], m)
+    seg = cap[:, :3] + s[:, None] * cap[:, 3:6]
+    out["capsule_segment_along"] = (seg, cap[:, 3:6] * rng.choice([-1.0, 1.0], (m, 1)))
+    out["capsule_segment_across"] = (seg, _quarter_dirs(rng, m, flat))
+    # a box's centre (its centre lines and planes), and its inner box's
+    # edges and corners (a sharp box's own: on the surface)
+    out["box_centre_axis"] = (box[:, :3], _axis_dirs(rng, m, flat))
+    dq = _quarter_dirs(rng, m, flat)
+    plane = rng.integers(0, 3, m)
+    if not flat:           # half of them in a centre plane (d_i = 0 there)
+        dq[np.arange(m), plane] = np.where(rng.uniform(size=m) < 0.5, 0.0, dq[np.arange(m), plane])
+        dq[~dq.any(1), (plane[~dq.any(1)] + 1) % 3] = 1.0
+    out["box_centre_oblique"] = (box[:, :3], dq)
+    e = box[:, 3:6]
+    sg = rng.choice([-1.0, 1.0], (m, 3))
+    along = 2 if flat else rng.integers(0, 3, m)
+    edge = box[:, :3] + sg * e
+    edge[np.arange(m), along] = box[np.arange(m), along] if flat else \
+        box[np.arange(m), along] + dyadic(rng.uniform(-1, 1, m) * e[np.arange(m), along])
+    out["box_edge_axis"] = (edge, np.eye(3)[np.broadcast_to(along, m)] * rng.choice([-1.0, 1.0], (m, 1)))
+    corner = box[:, :3] + sg * e
+    if flat:
+        corner[:, 2] = 0.0
+    out["box_corner_oblique"] = (corner, _quarter_dirs(rng, m, flat))
+    return out
+
+
+def singular_rays(scene: Scene, rng, n, flat=False):
+    """Rays through the singular points (:func:`singular_points`), about n
+    in all: {group: (o32, d32, t_min)}, each point met at t = 1 from
+    o = p - d (exact), half of the rays with t_min = 0 and half starting at
+    the point itself (o = p)."""
+    pts = singular_points(scene, rng, max(2, n // 24), flat)
+    out = {}
+    for name, (p, d) in pts.items():
+        o = np.concatenate([p - d, p])
+        dd = np.concatenate([d, d])
+        assert np.array_equal(np.float32(o).astype(np.float64), o), "ray origins not exact"
+        out[name] = (np.float32(o), np.float32(dd), np.zeros(len(o)))
+    return out
+
+
+def check_singular(rng, n, combine, form="primitives", flat=False, k=0.05, threshold=0.3,
+                   steps=2048):
+    """The scene of :func:`singular_scene` as a union (closed-form oracle),
+    a smooth union or a blend (the float64 scan of f, sign changes
+    bisected) on :func:`singular_rays`; returns (Verdict, per-group counts,
+    Surface)."""
+    blend = combine == "blend"
+    s = singular_scene(rng, flat=flat, blend=blend)
+    kw = {"k": k} if combine == "smooth_union" else {"threshold": threshold} if blend else {}
+    tf = s.table(combine, **kw)
+    bbox = flat_box(tf.bbox) if flat else tf.bbox
+    if form == "text":
+        f = parse(union_text(s) if combine == "union" else blend_text(s, threshold))
+    else:
+        f = tf
+    surf = lgshape.Surface(f, bbox=bbox)
+    F = Fn(f)
+    o, d, tm, label = _stack(singular_rays(s, rng, n, flat))
+    res = surf.trace(o, d, t_min=tm)
+    if combine == "union":
+        roots = union_oracle(s, o, d, surf.lo, surf.hi, tm)
+        v = judge(res, F, o, d, roots, surf.lo, surf.hi, tm)
+    else:
+        grow = k if combine == "smooth_union" else 0.0
+        roots = scan_oracle(F, s, o, d, surf.lo, surf.hi, grow, steps=steps, t_min=tm)
+        v = judge(res, F, o, d, roots, surf.lo, surf.hi, tm, complete=False)
+    return v, by_group(v, label), surf
+
+
+def _singular(combine, form="primitives", flat=False):
+    def run(rng, n):
+        return check_singular(rng, n, combine, form, flat)[0]
+    run.__doc__ = (f"Rays through the singular points of the distances (see above) of a "
+                   f"{combine.replace('_', ' ')} ({form}) in a {'flat' if flat else 'normal'} box.")
+    return run
+
+
+SINGULAR = [(c, fm, fl) for c, fm in (("union", "primitives"), ("union", "text"),
+                                      ("smooth_union", "primitives"), ("blend", "primitives"),
+                                      ("blend", "text")) for fl in (False, True)]
+for _c, _fm, _fl in SINGULAR:
+    attack(f"table_singular_{_c}{'_text' if _fm == 'text' else ''}{'_flat' if _fl else ''}")(
+        _singular(_c, _fm, _fl))
+
+
+@attack("table_singular_issue")
+def _singular_issue(rng, n):
+    """The issue's scene (two tori in a blend, threshold 0.2, in the flat box
+    z in +-0.0012) with its ray down the first torus's axis, and rays down
+    both axes and across them in the box's plane from around."""
+    c = np.array([[-0.7028555274009705, 0.39704275131225586, 0.0],
+                  [-0.7510408163070679, 0.2938717305660248, 0.0]])
+    R = np.array([0.051894959062337875, 0.08862226456403732])
+    r = np.array([0.024300141260027885, 0.03918442875146866])
+    s = Scene.make(tori=np.column_stack([c, R, r]))
+    tf = s.table("blend", threshold=0.2)
+    surf = lgshape.Surface(tf, bbox=((-1.2, -1.2, -0.0012), (1.2, 1.2, 0.0012)))
+    F = Fn(tf)
+    m = max(1, n // 4)
+    k = rng.integers(0, 2, m)
+    z = np.float32(rng.uniform(0.0012, 2.0, m)).astype(np.float64)
+    o = [np.array([[c[0, 0], c[0, 1], 1.0194339752197266]]),
+         np.column_stack([s.torus[k, :2], z]), np.column_stack([s.torus[k, :2], -z])]
+    d = [np.array([[0.0, 0.0, -1.0]]), np.tile([0.0, 0.0, -1.0], (m, 1)),
+         np.tile([0.0, 0.0, 1.0], (m, 1))]
+    dq = _quarter_dirs(rng, 2 * m, True)
+    kk = rng.integers(0, 2, 2 * m)
+    o.append(s.torus[kk, :3] - dq)
+    d.append(dq)
+    o, d = np.float32(np.concatenate(o)), np.float32(np.concatenate(d))
+    res = surf.trace(o, d)
+    roots = scan_oracle(F, s, o, d, surf.lo, surf.hi, 0.0, steps=4096)
+    return judge(res, F, o, d, roots, surf.lo, surf.hi, complete=False)
 
 
 # -- the polynomial path -------------------------------------------------------
