@@ -13,6 +13,10 @@ integrator that renders it do not fit.
 - lgsurface parameters are differentiated by ``lg_prb`` only: a gradient
   enabled on one under another integrator is an error
   (:class:`NotDifferentiableError`, raised by ``mi.render``) naming it.
+- A gradient pass of ``lg_prb`` that leaves out a term of the derivative it
+  is asked for (the light a moving emitting lgsurface casts, silhouettes
+  seen after a bounce, ...) says which, for which lgsurface
+  (:meth:`LGPRBIntegrator.uncovered`, given through :func:`warn_once`).
 
 The checks run in ``mi.render`` (:func:`install_render_hook`, called by
 :func:`lgshape.register_plugins`, wraps Mitsuba 3.9.1's Python
@@ -217,16 +221,24 @@ def check_render(scene, integrator=None, sensor=None, warn=None, stacklevel=2):
     lgs = _lg_shapes(scene)
     for message in (unseen_message(scene, integrator, lgs),
                     media_message(scene, integrator, sensor, lgs)):
-        if message is None:
-            continue
-        key = (scene.ptr, integrator.ptr, message)
-        if key in _said:
-            continue
-        _said.add(key)
-        if warn is not None:
-            warn(message)
-        else:
-            warnings.warn(message, LGShapeWarning, stacklevel=stacklevel + 1)
+        if message is not None:
+            warn_once(scene, integrator, message, warn, stacklevel + 1)
+
+
+def warn_once(scene, integrator, message, warn=None, stacklevel=2):
+    """Give ``message`` once per scene, integrator and message: to
+    ``warn(message)`` if given, else as an :class:`LGShapeWarning`
+    (``warnings.warn``, pointing ``stacklevel`` frames up from the caller).
+    Returns whether it was given now."""
+    key = (scene.ptr, integrator.ptr, message)
+    if key in _said:
+        return False
+    _said.add(key)
+    if warn is not None:
+        warn(message)
+    else:
+        warnings.warn(message, LGShapeWarning, stacklevel=stacklevel + 1)
+    return True
 
 
 def install_render_hook():
@@ -255,4 +267,4 @@ def install_render_hook():
 
 
 __all__ = ["INSTEAD", "LGShapeWarning", "NotDifferentiableError", "check_render",
-           "install_render_hook", "integrator_name", "media_message", "unseen_message"]
+           "install_render_hook", "warn_once", "integrator_name", "media_message", "unseen_message"]

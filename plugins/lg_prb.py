@@ -136,6 +136,61 @@ class PathRecord:
         return hit, (lit, on_lg, ids, ts, count + dr.select(on, 1, 0))
 
 
+def _lg_name(lgs, k):
+    """The scene's k-th lgsurface as a message names it."""
+    if lgs[k].id():
+        return f"'{lgs[k].id()}'"
+    return f"{k + 1} of {len(lgs)} (no id)"
+
+
+def _shape_names(scene, shapes, most=3):
+    names = [f"'{s.id()}'" if s.id() else s.class_name() for s in shapes]
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more"
+                                      if len(names) > most else "")
+
+
+def _cut_by_box(shape, cache, n=33):
+    """Does f change sign (or vanish) on the faces of ``shape``'s box, so
+    that the box cuts the surface (an open surface; its cut edges move with
+    ``to_world`` and slide with f's parameters)? f is sampled on an n x n
+    grid of each face (so a crossing narrower than the grid's spacing can
+    go unseen). ``cache`` keeps the answer per shape for its surface (the
+    object a parameter update rebuilds)."""
+    surface = shape.surface
+    kept = cache.get(shape.ptr)
+    if kept is not None and kept[0] is surface:
+        return kept[1]
+    import numpy as np
+    lo, hi = (np.asarray(v, np.float64) for v in surface.bbox)
+    u = np.linspace(0.0, 1.0, n)
+    a, b = (g.ravel() for g in np.meshgrid(u, u))
+    points = []
+    for axis in range(3):
+        i, j = [x for x in range(3) if x != axis]
+        for side in (lo[axis], hi[axis]):
+            p = np.empty((a.size, 3))
+            p[:, axis] = side
+            p[:, i] = lo[i] + a * (hi[i] - lo[i])
+            p[:, j] = lo[j] + b * (hi[j] - lo[j])
+            points.append(p)
+    p = np.concatenate(points).astype(np.float32)
+    with dr.suspend_grad():
+        f = np.asarray(surface.value(mi.Point3f(p[:, 0], p[:, 1], p[:, 2])), np.float64)
+    f = f[np.isfinite(f)]
+    cut = bool(f.size and (f.min() <= 0 <= f.max()))
+    cache[shape.ptr] = (surface, cut)
+    return cut
+
+
+def _textured_native_emitters(scene):
+    """Does a native shape of ``scene`` carry a spatially varying area
+    emitter (whose samples lg_prb intersects again, as prb does)?"""
+    lg = {e.ptr for s in common.lg_shapes(scene) if (e := s.emitter()) is not None}
+    return any(mi.has_flag(e.flags(), mi.EmitterFlags.Surface)
+               and mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying)
+               and e.ptr not in lg for e in scene.emitters())
+
+
 class LGPRBIntegrator(RBIntegrator):
     r"""
     .. _integrator-lg_prb:
@@ -226,6 +281,7 @@ class LGPRBIntegrator(RBIntegrator):
         self.shadow_edges = bool(props.get("shadow_edges", True))
         self.band_width = float(props.get("band_width", 1.0))
         self._pixel = (0.0, 0.0)            # (angle, footprint): _pixel_spread
+        self._cut = {}                      # shape -> (surface, cut by its box?): _cut_by_box
         if not self.band_width > 0:
             raise ValueError("lg_prb: 'band_width' must be > 0 (pixels)")
 
@@ -247,6 +303,7 @@ class LGPRBIntegrator(RBIntegrator):
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
         self._check_differentiable(scene)
+        self._warn_uncovered(scene)
         self._pixel = self._pixel_spread(scene, sensor)
         with _unwrapped(), common.traced_searches(scene):
             grad = super().render_forward(scene, params, sensor, seed, spp)
@@ -259,6 +316,7 @@ class LGPRBIntegrator(RBIntegrator):
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
         self._check_differentiable(scene)
+        self._warn_uncovered(scene)
         self._pixel = self._pixel_spread(scene, sensor)
         with _unwrapped(), common.traced_searches(scene):
             super().render_backward(scene, params, grad_in, sensor, seed, spp)
@@ -274,6 +332,81 @@ class LGPRBIntegrator(RBIntegrator):
         for shape in common.lg_shapes(scene):
             if shape.gradient_keys():
                 shape._ad_forms()
+
+    # ---- What a gradient pass leaves out ------------------------------------
+
+    def uncovered(self, scene):
+        """The terms of the derivative that a gradient pass on ``scene``
+        leaves out, as messages naming the moving lgsurface (one with
+        gradient-enabled parameters) and the term:
+
+        - it carries an area emitter and ``max_depth`` >= 2 (its light
+          reaches other surfaces): the light it emits does not follow its
+          shape (its emitter samples stay where they were drawn, and the
+          outline of its light seen from the points it lights has no
+          boundary term; only its primary silhouette has one);
+        - ``boundary`` is on, and paths can see it after a bounce where
+          that matters: ``max_depth`` >= 3 (a vertex after a bounce is lit,
+          so indirect light crosses its silhouette), or ``max_depth`` 2 and
+          some shape's BSDF has a delta or null component (a mirror, glass,
+          a null surface: no emitter sample stands in for what such a ray
+          sees behind the silhouette). With ``max_depth`` 2 and smooth
+          BSDFs only, what a BSDF sample sees behind the silhouette is
+          emission, whose edge the emitter samples' shadow-edge term
+          covers in full;
+        - ``boundary`` and ``shadow_edges`` are on, ``max_depth`` >= 2 and
+          another lgsurface emits: the shadows it casts on that light (the
+          cone samples, :func:`.common.sample_emitter_direction`) have no
+          boundary term;
+        - ``boundary`` is on and f changes sign on its box (:func:`_cut_by_box`):
+          the edges where the box cuts the surface have no boundary term.
+
+        With ``boundary`` off, no boundary term at all is computed, as asked,
+        and only the first kind is said."""
+        lgs = common.lg_shapes(scene)
+        moving = self._moving(scene)
+        if not moving:
+            return []
+        depth = self.max_depth
+        delta = [s for s in scene.shapes() if s.bsdf() is not None
+                 and mi.has_flag(s.bsdf().flags(), mi.BSDFFlags.Delta)]
+        emitting = [k for k, s in enumerate(lgs) if s.emitter() is not None]
+        left_out = "that part of the gradient is left out"
+        out = []
+        for k in moving:
+            name = _lg_name(lgs, k)
+            if lgs[k].emitter() is not None and depth >= 2:
+                out.append(f"lg_prb: the light that the moving lgsurface {name} emits does "
+                           f"not follow its shape's parameters (its emitter samples stay "
+                           f"fixed, and the edge of its light seen from the points it "
+                           f"lights has no boundary term): {left_out}")
+            if not self.boundary:
+                continue
+            if depth >= 3 or (depth == 2 and delta):
+                why = (f"max_depth {'-1' if depth == 0xFFFFFFFF else depth}" if depth >= 3 else
+                       f"max_depth 2 and the delta or null BSDF of "
+                       f"{_shape_names(scene, delta)}")
+                out.append(f"lg_prb: silhouettes of the moving lgsurface {name} seen after a "
+                           f"bounce (in mirrors, through glass, in interreflections) get no "
+                           f"boundary term ({why}): {left_out}")
+            others = [j for j in emitting if j != k]
+            if self.shadow_edges and depth >= 2 and others:
+                out.append(f"lg_prb: the shadows that the moving lgsurface {name} casts on "
+                           f"the light of the emitting lgsurface "
+                           f"{', '.join(_lg_name(lgs, j) for j in others)} get no boundary "
+                           f"term: {left_out}")
+            if _cut_by_box(lgs[k], self._cut):
+                out.append(f"lg_prb: the moving lgsurface {name} reaches its bounding box (f "
+                           f"changes sign on it: an open surface), and the edges where the "
+                           f"box cuts it get no boundary term: {left_out}")
+        return out
+
+    def _warn_uncovered(self, scene):
+        """Each of :meth:`uncovered`'s messages, once per scene, integrator
+        and message (:func:`.checks.warn_once`)."""
+        from .checks import warn_once
+        for message in self.uncovered(scene):
+            warn_once(scene, self, message, stacklevel=4)
 
     # ---- Visibility: the primary silhouettes of lgsurfaces ----------------
 
@@ -313,7 +446,10 @@ class LGPRBIntegrator(RBIntegrator):
         the surface's exit (the background the silhouette uncovers), both
         one path sample. Forward: the gradient image of the term; backward:
         the term's adjoint propagated (grad_in). ``moving``: the indices of
-        those lgsurfaces (:meth:`_moving`)."""
+        those lgsurfaces (:meth:`_moving`). Under ``hide_emitters`` the
+        camera rays continue past the area emitters they hit, as the paths
+        do (:func:`.common.skip_area_emitters`): a silhouette behind a hidden
+        emitter has its term, a hidden emitting lgsurface none."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
         film = sensor.film()
@@ -323,8 +459,15 @@ class LGPRBIntegrator(RBIntegrator):
                                         self.aov_names())
             ray, weight, pos = self.sample_rays(scene, sensor, sampler)
             hit = ray_intersect_preliminary(scene, ray)
+            # the camera ray as the paths see it: past the area emitters it
+            # hides (skip_area_emitters), `skipped` further from the camera
+            seen = mi.Ray3f(ray)
+            skipped = mi.Float(0)
+            if self.hide_emitters:
+                seen, hit = skip_area_emitters(scene, seen, hit)
+                skipped = dr.dot(mi.Vector3f(seen.o) - mi.Vector3f(ray.o), mi.Vector3f(ray.d))
             # the band's width: band_width pixels at the hit's distance
-            width = self._band(dr.detach(hit.t),
+            width = self._band(dr.detach(hit.t) + skipped,
                                dr.norm(mi.Vector3f(ray.d_x) - mi.Vector3f(ray.d)),
                                dr.norm(mi.Vector3f(ray.o_x) - mi.Vector3f(ray.o)))
             S = mi.Float(0)
@@ -335,13 +478,13 @@ class LGPRBIntegrator(RBIntegrator):
             for k in moving:
                 mine = hit.lg == k + 1
                 with dr.resume_grad():
-                    S_k, w_k, te_k, band_k = lgs[k].silhouette(ray, hit.t, width, mine, leaves)
+                    S_k, w_k, te_k, band_k = lgs[k].silhouette(seen, hit.t, width, mine, leaves)
                     S = dr.select(mine, S_k, S)
                 w, t_exit, band = (dr.select(mine, v, u) for v, u in
                                    ((w_k, w), (te_k, t_exit), (band_k, band)))
-            L_s = self.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, band)[0]
-            behind = mi.Ray3f(ray)
-            behind.o = mi.Point3f(ray(t_exit))
+            L_s = self.sample(dr.ADMode.Primal, scene, sampler, seen, None, None, band)[0]
+            behind = mi.Ray3f(seen)
+            behind.o = mi.Point3f(seen(t_exit))
             L_b = self.sample(dr.ADMode.Primal, scene, sampler, behind, None, None, band)[0]
             jump = dr.select(band, (L_s - L_b) * weight * w, 0.0)
             # (evaluated once: the term's gradients would each launch the
@@ -476,7 +619,7 @@ class LGPRBIntegrator(RBIntegrator):
             with dr.resume_grad(when=not primal):
                 if dr.hint(not primal, mode="scalar"):
                     ds, em_weight = self._attach_emitter_sample(scene, si, ds, em_weight,
-                                                                active_em, moves)
+                                                                active_em, tested, moves)
                 wo = si.to_local(ds.d)
 
             # ------ Evaluate BSDF * cos(theta) and sample a direction ------
@@ -568,14 +711,30 @@ class LGPRBIntegrator(RBIntegrator):
             w = dr.select(mine & band, w_k, w)
         return w, S
 
-    def _attach_emitter_sample(self, scene, si, ds, em_weight, active, moves):
+    def _attach_emitter_sample(self, scene, si, ds, em_weight, active, tested, moves):
         """The emitter sample's direction and weight as functions of the
         vertex (its motion, where geometry ``moves``) and of the emitter's
         parameters: the sampled emitter point stays fixed, the direction
         towards it and the solid-angle density move with si.p (Mitsuba's
-        prb does the same)."""
-        if moves:
-            is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
+        prb does the same). On a native shape's textured (spatially varying)
+        area emitter, the sample is intersected again from just before it,
+        as prb does: its point and uv follow that shape's motion, and the
+        emission its texture lookup. (``tested``: the lanes of lgsurfaces'
+        emitters, whose samples stay fixed.)"""
+        is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
+        is_surface = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Surface)
+        textured_em = _textured_native_emitters(scene)
+        if textured_em:
+            textured = active & ~tested & is_surface & \
+                mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.SpatiallyVarying)
+            ray_em = si.spawn_ray_to(ds.p)
+            # from just before the sample (its visibility is known)
+            ray_em.o = dr.fma(ray_em.d, ray_em.maxt, ray_em.o)
+            ray_em.maxt = dr.largest(mi.Float)
+            si_em = scene.ray_intersect(ray_em, textured)      # native shapes: the emitter's
+            ds = dr.replace_grad(ds, dr.select(textured, mi.DirectionSample3f(scene, si_em, si),
+                                               dr.zeros(mi.DirectionSample3f)))
+        if moves or textured_em:
             ds.d = dr.replace_grad(ds.d, dr.select(is_infinite, ds.d,
                                                    dr.normalize(ds.p - si.p)))
         value = scene.eval_emitter_direction(si, ds, active)
@@ -583,7 +742,6 @@ class LGPRBIntegrator(RBIntegrator):
         em_weight = dr.replace_grad(em_weight, value * dr.detach(inv_pdf))
         if not moves:
             return ds, em_weight
-        is_surface = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Surface)
         J = solid_angle_to_area_jacobian(si.p, dr.detach(ds.p), dr.detach(ds.n),
                                          active & is_surface)
         return ds, em_weight * dr.relative_grad(J)

@@ -18,6 +18,7 @@ import mitsuba as mi
 import pytest
 
 from conftest import VARIANT
+from test_57_frozen import scene as lit_torus
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -33,25 +34,11 @@ def cornell(integrator):
 
 
 def scene(integrator):
-    """An lgsurface torus lit by an emitting lgsurface ball and a sky, on a
-    native floor: camera hits, emitter hits and emitter samples on
-    lgsurfaces; and the integrator to render it with."""
-    T = mi.ScalarTransform4f
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": T().look_at([0, -4, 2], [0, 0, 0], [0, 0, 1]),
-                   "film": {"type": "hdrfilm", "width": 12, "height": 12},
-                   "sampler": {"type": "independent", "sample_count": 2}},
-        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.2}},
-        "torus": {"type": "lgsurface", "surface": "torus",
-                  "bsdf": {"type": "diffuse"}},
-        "lamp": {"type": "lgsurface", "expr": "x^2 + y^2 + z^2 - 0.04",
-                 "bbox_min": [-0.25] * 3, "bbox_max": [0.25] * 3,
-                 "to_world": T().translate([0.8, -0.8, 1.2]),
-                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 5}}},
-        "floor": {"type": "rectangle", "to_world": T().translate([0, 0, -0.6]).scale(3)},
-    }), mi.load_dict(integrator)
+    """test_57's lit torus (an lgsurface torus lit by an emitting lgsurface
+    ball and a sky, on a native floor: camera hits, emitter hits and
+    emitter samples on lgsurfaces), and its integrator."""
+    s = lit_torus(integrator)
+    return s, s.integrator()
 
 
 def kernels(fn):

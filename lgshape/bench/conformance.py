@@ -33,10 +33,12 @@ ALPHA = 1e-3
 
 #: Two renders of the same expectation may also differ by float32
 #: rounding where the noise vanishes (a pixel that sees only a constant
-#: emitter): ROUND u (|a| + |b|), u = 2^-24 (a pixel value is a sum of
-#: float32 terms of a few dozen roundings each; the lgsurface's hits are
-#: within the search's tolerance of the twin's), added to the standard
-#: error.
+#: emitter, an AOV): ROUND u (|a| + |b| + s), u = 2^-24, s the channel's
+#: largest |value| in the image (a pixel value is a sum of float32 terms of
+#: a few dozen roundings each, relative to the size of the quantity: a
+#: component of a unit normal near 0 carries the rounding of the vector's
+#: other components; the lgsurface's hits are within the search's tolerance
+#: of the twin's), added to the standard error.
 ROUND, U = 256, 2.0 ** -24
 
 #: The pixel blocks of the second scale (block x block pixels).
@@ -364,14 +366,15 @@ def render_seeds(case, integrator, props, lg, res, spp, seeds) -> np.ndarray:
 #  The statistics
 # ---------------------------------------------------------------------------
 
-def welch(xa, xb):
+def welch(xa, xb, scale=0.0):
     """Welch's t of mean(xa) - mean(xb) over the first axis (the seeds),
-    with the rounding floor (:data:`ROUND`) in the standard error: (t, df).
-    Lanes where both are constant and equal have t = 0."""
+    with the rounding floor (:data:`ROUND`; ``scale``: each channel's
+    largest |value|, broadcast against the means) in the standard error:
+    (t, df). Lanes where both are constant and equal have t = 0."""
     ka, kb = xa.shape[0], xb.shape[0]
     ma, mb = xa.mean(0), xb.mean(0)
     va, vb = xa.var(0, ddof=1) / ka, xb.var(0, ddof=1) / kb
-    floor = (ROUND * U * (np.abs(ma) + np.abs(mb))) ** 2
+    floor = (ROUND * U * (np.abs(ma) + np.abs(mb) + scale)) ** 2
     d = ma - mb
     se2 = va + vb + floor
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -420,9 +423,10 @@ def compare(a, b, alpha, block=BLOCK) -> Verdict:
     scale's tests. The mean scale: the blocks' t summed, standardized."""
     from scipy.stats import norm, t as student
     verdict = Verdict()
+    size = np.maximum(np.abs(a).max((0, 1, 2)), np.abs(b).max((0, 1, 2)))   # per channel
     for scale, (xa, xb) in (("pixel", (a, b)), ("block", (_blocks(a, block), _blocks(b, block))),
                             ("image", (a.mean((1, 2)), b.mean((1, 2))))):
-        t, df = welch(xa, xb)
+        t, df = welch(xa, xb, size)
         p = 2 * student.sf(np.abs(t), df)
         n = p.size
         limit = alpha / 4 / n
