@@ -166,6 +166,10 @@ def render(integrator, base, scene, sensor=0, seed=0, spp=0, develop=True, evalu
         if _recording_gradients():
             return base(integrator, scene, sensor, seed, spp, develop, evaluate)
         arrays, key = state(scene, integrator)
+        # Every input an evaluated array, in the traced renders as in the
+        # recording (a literal or unevaluated input would be compiled into
+        # the one and evaluated before the other: two kernels).
+        dr.make_opaque(*arrays)
         rec = integrator.__dict__.get(_SLOT)
         if rec is None:
             rec = integrator.__dict__[_SLOT] = _Recordings(base, integrator)
