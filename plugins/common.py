@@ -72,16 +72,6 @@ def check(integrator, scene, sensor=0) -> None:
     refresh_infinite_emitters(scene)
 
 
-def render(integrator, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-    """The lg integrators' ``render`` (``mi.render`` calls the Python
-    method): :func:`check`, then Mitsuba's own, frozen after the first
-    renders of a scene (:mod:`.frozen`)."""
-    from . import frozen
-    check(integrator, scene, sensor)
-    return frozen.render(integrator, mi.SamplingIntegrator.render, scene, sensor, seed, spp,
-                         develop, evaluate)
-
-
 # ---------------------------------------------------------------------------
 #  Combined ray queries
 # ---------------------------------------------------------------------------

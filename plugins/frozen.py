@@ -40,7 +40,7 @@ import numpy as np
 
 from lgshape.trace import call_frozen
 
-from .common import traced_searches
+from .common import check, traced_searches
 
 #: Recordings kept per integrator (keys beyond it are traced each time).
 LIMIT = 8
@@ -185,3 +185,12 @@ def render(integrator, base, scene, sensor=0, seed=0, spp=0, develop=True, evalu
             while len(rec.warm) > LIMIT:
                 rec.warm.popitem(last=False)
         return image
+
+
+def sampling_render(integrator, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+    """The ``render`` of the lg integrators built on ``mi.SamplingIntegrator``
+    (``mi.render`` calls the Python method): :func:`.common.check`, then
+    Mitsuba's own, frozen where it can be (:func:`render`)."""
+    check(integrator, scene, sensor)
+    return render(integrator, mi.SamplingIntegrator.render, scene, sensor, seed, spp,
+                  develop, evaluate)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import common
+from . import common, frozen
 from .common import ray_intersect
 
 #: AOV type -> channel suffixes (the names Mitsuba 3.9.1's ``aov`` gives).
@@ -113,7 +113,7 @@ class LGAOVIntegrator(mi.SamplingIntegrator):
 
     # Mitsuba's render, with the infinite emitters given the scene's current
     # bounds first (:func:`.common.refresh_infinite_emitters`).
-    render = common.render
+    render = frozen.sampling_render
 
     def aov_names(self):
         names = [name + suffix for name, kind in self.aovs for suffix in AOV_TYPES[kind]]

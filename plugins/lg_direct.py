@@ -4,7 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import common
+from . import common, frozen
 from .common import (compute_interaction, mis_weight, pdf_emitter_direction, ray_intersect,
                      ray_intersect_preliminary, ray_test, sample_emitter_direction,
                      skip_area_emitters)
@@ -125,7 +125,7 @@ class LGDirectIntegrator(mi.SamplingIntegrator):
 
     # Mitsuba's render, with the infinite emitters given the scene's current
     # bounds first (:func:`.common.refresh_infinite_emitters`).
-    render = common.render
+    render = frozen.sampling_render
 
     def aov_names(self):
         return []

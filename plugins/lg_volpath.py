@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import common
+from . import common, frozen
 from .common import (compute_interaction, mis_weight, pdf_emitter_direction, ray_intersect,
                      ray_intersect_preliminary, sample_emitter_direction, skip_area_emitters)
 
@@ -283,7 +283,7 @@ class LGVolpathIntegrator(mi.SamplingIntegrator):
 
     # Mitsuba's render, with the infinite emitters given the scene's current
     # bounds first (:func:`.common.refresh_infinite_emitters`).
-    render = common.render
+    render = frozen.sampling_render
 
     # Not differentiable: a gradient render (mi.render(scene, params), then
     # dr.forward / dr.backward) refuses rather than return a wrong gradient.
