@@ -300,13 +300,16 @@ def _first_non_null(scene, ray, active):
     return ray, hit
 
 
-def sample_emitter_direction(scene, si, sample, active=True, through_null=False):
+def sample_emitter_direction(scene, si, sample, active=True, through_null=False, hit=False):
     """Emitter sampling that includes the area emitters of lgsurfaces:
     (ds, weight, tested). As ``scene.sample_emitter_direction(si, sample,
     False, active)`` for the scene's other emitters; for an lgsurface's,
     the traced cone sample above: ``tested`` marks those lanes, whose
     visibility is part of the sample (weight 0 where occluded), so that no
-    shadow ray is needed there.
+    shadow ray is needed there. ``hit``: also return the cone ray's first
+    hit (a :class:`Hit`, along ``si.spawn_ray(ds.d)``; lg 0 and t inf
+    outside ``tested``), as a fourth value: lg_prb attaches the sample to
+    the emitter's parameters from it, and finds the edges it lies near.
 
     ``through_null``: whether the cone sample passes through ``null``
     surfaces. False for the integrators whose shadow rays stop at any
@@ -318,9 +321,10 @@ def sample_emitter_direction(scene, si, sample, active=True, through_null=False)
     active = mi.Bool(active)
     ds, weight = scene.sample_emitter_direction(si, sample, False, active)
     tested = mi.Bool(False)
+    cone = Hit(pi=dr.zeros(mi.PreliminaryIntersection3f), lg=mi.UInt32(0), t=mi.Float(dr.inf))
     ours = _lg_emitters(scene)
     if not ours:
-        return ds, weight, tested
+        return (ds, weight, tested, cone) if hit else (ds, weight, tested)
     index, sel_weight, reused = scene.sample_emitter(sample.x, active)
     for k, shape, em_index in ours:
         mine = active & (index == em_index)
@@ -328,12 +332,12 @@ def sample_emitter_direction(scene, si, sample, active=True, through_null=False)
         local = mi.warp.square_to_uniform_cone(mi.Point2f(reused, sample.y), cos_max)
         d = mi.Frame3f(axis).to_world(local)
         if through_null:
-            ray, hit = _first_non_null(scene, si.spawn_ray(d), mine)
+            ray, first = _first_non_null(scene, si.spawn_ray(d), mine)
         else:
             ray = si.spawn_ray(d)
-            hit = ray_intersect_preliminary(scene, ray, mine)
-        on = mine & (hit.lg == k + 1)
-        si_e = compute_interaction(scene, ray, hit, active=on)
+            first = ray_intersect_preliminary(scene, ray, mine)
+        on = mine & (first.lg == k + 1)
+        si_e = compute_interaction(scene, ray, first, active=on)
         em = shape.emitter()
         ds_k = dr.zeros(mi.DirectionSample3f)
         ds_k.p, ds_k.n, ds_k.uv = si_e.p, si_e.n, si_e.uv
@@ -348,7 +352,8 @@ def sample_emitter_direction(scene, si, sample, active=True, through_null=False)
         ds = dr.select(mine, ds_k, ds)
         weight = dr.select(mine, w, weight)
         tested |= mine
-    return ds, weight, tested
+        cone = dr.select(mine, first, cone)
+    return (ds, weight, tested, cone) if hit else (ds, weight, tested)
 
 
 def pdf_emitter_direction(scene, ref, ds, active=True):

@@ -226,6 +226,14 @@ class LGPRBIntegrator(RBIntegrator):
          that term is relaxed: its bias grows with the band against the
          silhouette's curvature radius (in pixels), its variance as the band
          narrows. (Default: 1)
+     * - light_band
+       - |float|
+       - Width of the band inside the edges of an emitting lgsurface's
+         light (its silhouette, and the shadows that moving lgsurfaces cast
+         on it), as a fraction of the light's angular radius seen from each
+         shading point: the bias of that term grows with it, its variance
+         as it narrows. An emitter thinner than this fraction of its size
+         needs a smaller value. (Default: 0.05)
 
     ``lg_path``'s estimator (emitter sampling, MIS, Russian roulette) as a
     differentiable integrator: ``mi.render(scene, params, ...)``,
@@ -250,10 +258,15 @@ class LGPRBIntegrator(RBIntegrator):
     ``band_width`` pixels, sampled by a second set of camera rays), and so
     do the shadow edges they cast on the emitter samples, at every vertex
     (:meth:`_shadow_edge`: the same relaxation, over ``band_width`` pixels'
-    angle at the occluder). Left out: silhouettes seen after a bounce (the
-    moving lgsurface in front of other surfaces, lit or not, in indirect
-    light), edges of shadows on lgsurfaces' own emitters' cone samples, and
-    native shapes' boundaries (``prb`` leaves all boundaries out).
+    angle at the occluder). The light of an emitting lgsurface follows its
+    shape: its cone samples are re-attached (:meth:`_cone_sample_interior`)
+    and the edge of its light seen from each shading point, its silhouette
+    and the shadows moving lgsurfaces cast on it, has its boundary term
+    (:meth:`_light_edges`, over ``light_band`` of the light's angular
+    radius). Left out: silhouettes seen after a bounce (the moving
+    lgsurface in front of other surfaces, lit or not, in indirect light),
+    and native shapes' boundaries (``prb`` leaves all boundaries out); a
+    gradient pass says so once (:meth:`uncovered`).
     Participating media are ignored (and a scene with some warns).
 
     .. tabs::
@@ -280,10 +293,14 @@ class LGPRBIntegrator(RBIntegrator):
         self.boundary = bool(props.get("boundary", True))
         self.shadow_edges = bool(props.get("shadow_edges", True))
         self.band_width = float(props.get("band_width", 1.0))
+        self.light_band = float(props.get("light_band", 0.05))
         self._pixel = (0.0, 0.0)            # (angle, footprint): _pixel_spread
         self._cut = {}                      # shape -> (surface, cut by its box?): _cut_by_box
         if not self.band_width > 0:
             raise ValueError("lg_prb: 'band_width' must be > 0 (pixels)")
+        if not 0 < self.light_band < 1:
+            raise ValueError("lg_prb: 'light_band' must lie in (0, 1) (a fraction of a light's "
+                             "angular radius)")
 
     # Mitsuba's render, forward and backward passes, after the checks (media
     # ignored) and with the infinite emitters given the scene's current
@@ -340,11 +357,6 @@ class LGPRBIntegrator(RBIntegrator):
         leaves out, as messages naming the moving lgsurface (one with
         gradient-enabled parameters) and the term:
 
-        - it carries an area emitter and ``max_depth`` >= 2 (its light
-          reaches other surfaces): the light it emits does not follow its
-          shape (its emitter samples stay where they were drawn, and the
-          outline of its light seen from the points it lights has no
-          boundary term; only its primary silhouette has one);
         - ``boundary`` is on, and paths can see it after a bounce where
           that matters: ``max_depth`` >= 3 (a vertex after a bounce is lit,
           so indirect light crosses its silhouette), or ``max_depth`` 2 and
@@ -354,15 +366,12 @@ class LGPRBIntegrator(RBIntegrator):
           BSDFs only, what a BSDF sample sees behind the silhouette is
           emission, whose edge the emitter samples' shadow-edge term
           covers in full;
-        - ``boundary`` and ``shadow_edges`` are on, ``max_depth`` >= 2 and
-          another lgsurface emits: the shadows it casts on that light (the
-          cone samples, :func:`.common.sample_emitter_direction`) have no
-          boundary term;
         - ``boundary`` is on and f changes sign on its box (:func:`_cut_by_box`):
           the edges where the box cuts the surface have no boundary term.
 
         With ``boundary`` off, no boundary term at all is computed, as asked,
-        and only the first kind is said."""
+        and nothing is said. (The light of an emitting lgsurface follows its
+        shape: :meth:`_cone_sample_interior`, :meth:`_light_edges`.)"""
         lgs = common.lg_shapes(scene)
         moving = self._moving(scene)
         if not moving:
@@ -370,16 +379,10 @@ class LGPRBIntegrator(RBIntegrator):
         depth = self.max_depth
         delta = [s for s in scene.shapes() if s.bsdf() is not None
                  and mi.has_flag(s.bsdf().flags(), mi.BSDFFlags.Delta)]
-        emitting = [k for k, s in enumerate(lgs) if s.emitter() is not None]
         left_out = "that part of the gradient is left out"
         out = []
         for k in moving:
             name = _lg_name(lgs, k)
-            if lgs[k].emitter() is not None and depth >= 2:
-                out.append(f"lg_prb: the light that the moving lgsurface {name} emits does "
-                           f"not follow its shape's parameters (its emitter samples stay "
-                           f"fixed, and the edge of its light seen from the points it "
-                           f"lights has no boundary term): {left_out}")
             if not self.boundary:
                 continue
             if depth >= 3 or (depth == 2 and delta):
@@ -389,12 +392,6 @@ class LGPRBIntegrator(RBIntegrator):
                 out.append(f"lg_prb: silhouettes of the moving lgsurface {name} seen after a "
                            f"bounce (in mirrors, through glass, in interreflections) get no "
                            f"boundary term ({why}): {left_out}")
-            others = [j for j in emitting if j != k]
-            if self.shadow_edges and depth >= 2 and others:
-                out.append(f"lg_prb: the shadows that the moving lgsurface {name} casts on "
-                           f"the light of the emitting lgsurface "
-                           f"{', '.join(_lg_name(lgs, j) for j in others)} get no boundary "
-                           f"term: {left_out}")
             if _cut_by_box(lgs[k], self._cut):
                 out.append(f"lg_prb: the moving lgsurface {name} reaches its bounding box (f "
                            f"changes sign on it: an open surface), and the edges where the "
@@ -610,8 +607,9 @@ class LGPRBIntegrator(RBIntegrator):
 
             # ---------------------- Emitter sampling ----------------------
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            ds, em_weight, tested = sample_emitter_direction(scene, si, sampler.next_2d(),
-                                                             active_em)
+            # (cone: the first hit of an lgsurface emitter's cone sample)
+            ds, em_weight, tested, cone = sample_emitter_direction(scene, si, sampler.next_2d(),
+                                                                   active_em, hit=True)
             active_em &= ds.pdf != 0
             sampled = mi.Bool(active_em)
             active_em, record = rec.visibility(scene, si.spawn_ray_to(ds.p), active_em, tested,
@@ -619,8 +617,14 @@ class LGPRBIntegrator(RBIntegrator):
             with dr.resume_grad(when=not primal):
                 if dr.hint(not primal, mode="scalar"):
                     ds, em_weight = self._attach_emitter_sample(scene, si, ds, em_weight,
-                                                                active_em, tested, moves)
+                                                                active_em, tested, moves, cone)
                 wo = si.to_local(ds.d)
+            # the edges of lgsurface emitters' light and of the shadows on
+            # it, seen from this vertex (_light_edges; None: none moves)
+            light_edges = None
+            if dr.hint(not primal, mode="scalar"):
+                light_edges = self._light_edges(scene, si, ds, em_weight, cone,
+                                                sampled & tested, moves)
 
             # ------ Evaluate BSDF * cos(theta) and sample a direction ------
             sample_1, sample_2 = sampler.next_1d(), sampler.next_2d()
@@ -638,6 +642,12 @@ class LGPRBIntegrator(RBIntegrator):
                                                  sampled & ~active_em & ~tested, moving)
                     Lr_dir = Lr_dir + dr.detach(β * bsdf_val * em_weight * w_e) * \
                         (S_e - dr.detach(S_e))
+                if dr.hint(light_edges is not None, mode="scalar"):
+                    # the cone samples near the edge of an lgsurface emitter's
+                    # light (its silhouette, or a moving lgsurface's in front
+                    # of it): the jump across the edge, times the band's
+                    # weight, moving with the edge (all of it, as above)
+                    Lr_dir = Lr_dir + dr.detach(β * bsdf_val) * light_edges
             bs, bsdf_weight = bsdf.sample(bsdf_ctx, si, sample_1, sample_2, active_next)
 
             # ---------------------- BSDF sampling ----------------------
@@ -711,7 +721,8 @@ class LGPRBIntegrator(RBIntegrator):
             w = dr.select(mine & band, w_k, w)
         return w, S
 
-    def _attach_emitter_sample(self, scene, si, ds, em_weight, active, tested, moves):
+    def _attach_emitter_sample(self, scene, si, ds, em_weight, active, tested, moves,
+                               cone=None):
         """The emitter sample's direction and weight as functions of the
         vertex (its motion, where geometry ``moves``) and of the emitter's
         parameters: the sampled emitter point stays fixed, the direction
@@ -719,8 +730,10 @@ class LGPRBIntegrator(RBIntegrator):
         prb does the same). On a native shape's textured (spatially varying)
         area emitter, the sample is intersected again from just before it,
         as prb does: its point and uv follow that shape's motion, and the
-        emission its texture lookup. (``tested``: the lanes of lgsurfaces'
-        emitters, whose samples stay fixed.)"""
+        emission its texture lookup. On an lgsurface's emitter (``tested``
+        lanes, ``cone``: the cone ray's hit) the same holds for the motion
+        of si.p, and the sample also follows the emitting shape's own
+        parameters (:meth:`_cone_sample_interior`)."""
         is_infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
         is_surface = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Surface)
         textured_em = _textured_native_emitters(scene)
@@ -740,11 +753,130 @@ class LGPRBIntegrator(RBIntegrator):
         value = scene.eval_emitter_direction(si, ds, active)
         inv_pdf = dr.select(ds.pdf != 0, dr.rcp(ds.pdf), 0.0)
         em_weight = dr.replace_grad(em_weight, value * dr.detach(inv_pdf))
+        if cone is not None:
+            em_weight = em_weight + self._cone_sample_interior(scene, si, ds, active & tested,
+                                                               cone)
         if not moves:
             return ds, em_weight
         J = solid_angle_to_area_jacobian(si.p, dr.detach(ds.p), dr.detach(ds.n),
                                          active & is_surface)
         return ds, em_weight * dr.relative_grad(J)
+
+    def _cone_sample_interior(self, scene, si, ds, lanes, cone):
+        """The interior term of the cone samples (``lanes``) that hit a
+        moving emitting lgsurface: with the shading point and the sampled
+        direction fixed (the cone and its density do not depend on the
+        shape's parameters: its bounding sphere is a constant), the hit
+        moves along the ray by the implicit-function theorem
+        (:func:`.common.compute_interaction` under ``dr.resume_grad``) and
+        the emission is evaluated there again (a textured radiance follows
+        the hit's uv). Returns a term of value 0 whose derivative is that
+        (the emission's own parameters keep theirs from the sample's
+        value: the two evaluations' difference cancels them); 0 where no
+        emitting lgsurface moves. The motion of si.p is the area form's
+        (:meth:`_attach_emitter_sample`), and the light's edge has its own
+        term (:meth:`_light_edges`)."""
+        lgs = common.lg_shapes(scene)
+        with dr.resume_grad():
+            movers = [k for k in self._moving(scene) if lgs[k].emitter() is not None]
+        if not movers:
+            return 0.0
+        on = mi.Bool(False)
+        for k in movers:
+            on |= lanes & (cone.lg == k + 1) & (ds.emitter == mi.EmitterPtr(lgs[k].emitter()))
+        ray = dr.detach(si).spawn_ray(dr.detach(ds.d))     # the cone ray, as sampled
+        hit = Hit(pi=dr.zeros(mi.PreliminaryIntersection3f), lg=dr.select(on, cone.lg, 0),
+                  t=dr.select(on, cone.t, dr.inf))
+        inv_pdf = dr.detach(dr.select(ds.pdf > 0, dr.rcp(ds.pdf), 0.0))
+        with dr.resume_grad():
+            si_e = compute_interaction(scene, ray, hit, active=on)
+            value = ds.emitter.eval(si_e, on) - ds.emitter.eval(dr.detach(si_e), on)
+            return dr.select(on, value * inv_pdf, 0.0)
+
+    def _light_edges(self, scene, si, ds, em_weight, cone, lanes, moves):
+        """The boundary terms of the cone samples (``lanes``, of
+        lgsurfaces' emitters: :func:`.common.sample_emitter_direction`;
+        ``cone``: each one's first hit) at a vertex, for the light's edges
+        seen from it: a term of value 0 whose derivative is theirs, in the
+        units of ``em_weight`` (the caller multiplies by beta times the
+        BSDF value), or None where there is none to compute (``boundary``
+        off, or nothing moves).
+
+        - The emitter's own silhouette (where its shape moves, or the
+          shading point ``moves``): a sample that hits it inside the band
+          of its silhouette (S < 0, :meth:`LGSurface.silhouette`, band
+          ``light_band`` times the cone's radius at the hit) brings f_hit
+          (``em_weight``) where the ray continued past the emitter's exit
+          brings f_behind (the emitter hit again: a non-convex emitter;
+          usually 0). With H = [S < 0], f = H f_hit + (1 - H) f_behind
+          moves by -(f_hit - f_behind) delta(S) dS, relaxed to the band's
+          weight w. The shape's parameters move the edge at the fixed
+          sampled direction (S of the fixed ray); the shading point's
+          motion is the area form's (:meth:`_attach_emitter_sample`: the
+          sample point fixed), in which only the hidden part f_behind has
+          an edge (the visible part's horizon has none: its cosine
+          vanishes there), S then following the ray from si.p to the point
+          behind. So w (-f_hit dS_1 + f_behind dS_2), S_1 of the fixed ray
+          and S_2 of the ray from the moving si.p to the fixed point
+          behind (both attached to the shape's parameters).
+        - The shadows that a moving lgsurface (``shadow_edges`` on) casts
+          on the samples: a sample whose ray it stops inside the band of
+          its silhouette, and whose ray continued past its exit reaches
+          the sampled emitter first, brings f_behind there: visibility
+          [S > 0] moves by delta(S) dS, the term is w f_behind dS_2.
+
+        The BSDF-sampled rays that hit the emitter have no edge term of
+        their own: this one is the whole integrand's, not its MIS share."""
+        if not self.boundary:
+            return None
+        lgs = common.lg_shapes(scene)
+        with dr.resume_grad():
+            moving = self._moving(scene)
+        emitting = [k for k, shape in enumerate(lgs) if shape.emitter() is not None]
+        own = [k for k in emitting if moves or k in moving]
+        occluders = moving if self.shadow_edges else []
+        if not emitting or not (own or occluders):
+            return None
+        em_lg = mi.UInt32(0)                    # the sampled emitter's lgsurface (k + 1)
+        for k in emitting:
+            em_lg = dr.select(ds.emitter == mi.EmitterPtr(lgs[k].emitter()), k + 1, em_lg)
+        ray = dr.detach(si).spawn_ray(dr.detach(ds.d))     # the cone ray, as sampled
+        # the band: light_band times the radius of the sampled emitter's
+        # cone at the hit's distance (the cone holds its bounding sphere)
+        tan_cone = mi.Float(0.0)
+        for k in emitting:
+            _, cos_max, _ = common._cone(lgs[k], dr.detach(si.p))
+            tan_k = dr.safe_sqrt(1.0 - cos_max * cos_max) / dr.maximum(cos_max, 1e-6)
+            tan_cone = dr.select(em_lg == k + 1, tan_k, tan_cone)
+        width = self.light_band * dr.detach(cone.t * dr.norm(ray.d) * tan_cone)
+        f_hit = dr.detach(em_weight)
+        inv_pdf = dr.detach(dr.select(ds.pdf > 0, dr.rcp(ds.pdf), 0.0))
+        term = mi.Spectrum(0.0)
+        for k in sorted(set(own) | set(occluders)):
+            is_own = em_lg == k + 1
+            mine = lanes & (cone.lg == k + 1) & \
+                ((is_own & (k in own)) | (~is_own & (k in occluders)))
+            with dr.resume_grad():
+                S_1, w, t_exit, band = lgs[k].silhouette(ray, cone.t, width, mine)
+            behind = mi.Ray3f(ray)
+            behind.o = mi.Point3f(ray(t_exit))
+            behind.maxt = dr.largest(mi.Float)
+            hit_b = ray_intersect_preliminary(scene, behind, band)
+            lit = band & (hit_b.lg == em_lg) & (em_lg != 0)
+            si_b = compute_interaction(scene, behind, hit_b, active=lit)
+            f_behind = dr.detach(dr.select(lit, ds.emitter.eval(si_b, lit) * inv_pdf, 0.0))
+            S_2 = S_1
+            if moves:
+                with dr.resume_grad():
+                    moving_ray = si.spawn_ray(dr.detach(ds.d))
+                    moving_ray.d = dr.normalize(dr.detach(si_b.p) - moving_ray.o)
+                    S_2 = lgs[k].silhouette(ray, cone.t, width, lit, moving_ray=moving_ray)[0]
+            with dr.resume_grad():
+                w = dr.detach(w)
+                dS_1 = dr.select(band & is_own, S_1 - dr.detach(S_1), 0.0)
+                dS_2 = dr.select(lit, S_2 - dr.detach(S_2), 0.0)
+                term = term + w * (f_behind * dS_2 - dr.select(is_own, f_hit, 0.0) * dS_1)
+        return term
 
     def _propagate(self, mode, scene, bsdf, bsdf_ctx, si, ray_next, hit_next, L, Le, Lr_dir,
                    δL, active_next, moves):
