@@ -33,6 +33,7 @@ PLUGINS = {
     "lg_aov": ("integrator", "LGAOVIntegrator"),
     "lg_prb": ("integrator", "LGPRBIntegrator"),
     "lg_volpath": ("integrator", "LGVolpathIntegrator"),
+    "lg_prbvolpath": ("integrator", "LGPRBVolpathIntegrator"),
 }
 
 _registered: set[str] = set()

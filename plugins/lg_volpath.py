@@ -30,9 +30,9 @@ def _refuse_gradients(params):
     names = ", ".join(f"'{k}'" for k in on) or "(none enabled)"
     raise NotDifferentiableError(
         f"lg_volpath does not compute gradients, but a gradient render was asked for the scene "
-        f"parameters {names}: render media gradients with Mitsuba's 'prbvolpath' on native "
-        f"shapes, lgsurface parameters with 'lg_prb' (which ignores media), or call "
-        f"dr.disable_grad() on them")
+        f"parameters {names}: render media, BSDF, phase and emitter gradients with "
+        f"'lg_prbvolpath' (the same estimator, differentiated), lgsurface parameters with "
+        f"'lg_prb' (which ignores media), or call dr.disable_grad() on them")
 
 
 def _grad_enabled(value):

@@ -353,8 +353,9 @@ def example():
 def test17_example_help_shows_defaults():
     text = example().parser().format_help()
     for option, default in (("--iterations", 200), ("--res", 48), ("--spp", 16),
-                            ("--lr", 0.02), ("--tolerance", 0.01)):
+                            ("--tolerance", 0.01)):
         assert option in text and f"(default: {default})" in text, option
+    assert "--lr" in text and "(default: the problem's" in text
     assert "32 x --spp" in text and "Exit status: 0 converged" in " ".join(text.split())
 
 
