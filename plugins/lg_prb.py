@@ -226,6 +226,11 @@ class LGPRBIntegrator(RBIntegrator):
          that term is relaxed: its bias grows with the band against the
          silhouette's curvature radius (in pixels), its variance as the band
          narrows. (Default: 1)
+     * - bounce_edges
+       - |int|
+       - How many bounces of each path add the boundary term of the moving
+         lgsurfaces' silhouettes they see (in mirrors, through glass, in
+         interreflections; needs ``boundary``). 0 turns it off. (Default: 2)
      * - light_band
        - |float|
        - Width of the band inside the edges of an emitting lgsurface's
@@ -294,10 +299,13 @@ class LGPRBIntegrator(RBIntegrator):
         self.shadow_edges = bool(props.get("shadow_edges", True))
         self.band_width = float(props.get("band_width", 1.0))
         self.light_band = float(props.get("light_band", 0.05))
+        self.bounce_edges = int(props.get("bounce_edges", 2))
         self._pixel = (0.0, 0.0)            # (angle, footprint): _pixel_spread
         self._cut = {}                      # shape -> (surface, cut by its box?): _cut_by_box
         if not self.band_width > 0:
             raise ValueError("lg_prb: 'band_width' must be > 0 (pixels)")
+        if self.bounce_edges < 0:
+            raise ValueError("lg_prb: 'bounce_edges' must be >= 0 (a number of bounces)")
         if not 0 < self.light_band < 1:
             raise ValueError("lg_prb: 'light_band' must lie in (0, 1) (a fraction of a light's "
                              "angular radius)")
@@ -357,15 +365,13 @@ class LGPRBIntegrator(RBIntegrator):
         leaves out, as messages naming the moving lgsurface (one with
         gradient-enabled parameters) and the term:
 
-        - ``boundary`` is on, and paths can see it after a bounce where
-          that matters: ``max_depth`` >= 3 (a vertex after a bounce is lit,
-          so indirect light crosses its silhouette), or ``max_depth`` 2 and
-          some shape's BSDF has a delta or null component (a mirror, glass,
-          a null surface: no emitter sample stands in for what such a ray
-          sees behind the silhouette). With ``max_depth`` 2 and smooth
-          BSDFs only, what a BSDF sample sees behind the silhouette is
-          emission, whose edge the emitter samples' shadow-edge term
-          covers in full;
+        - ``boundary`` is on, paths can see it after a bounce where that
+          matters (``max_depth`` >= 3: a vertex after a bounce is lit; or
+          ``max_depth`` 2 and some shape's BSDF has a delta or null
+          component: a mirror, glass, a null surface), and the bounces that
+          can see light (``max_depth`` - 1, unbounded at -1) outnumber
+          ``bounce_edges``, the bounces whose silhouettes have their term
+          (:meth:`_bounce_term`);
         - ``boundary`` is on and f changes sign on its box (:func:`_cut_by_box`):
           the edges where the box cuts the surface have no boundary term.
 
@@ -385,12 +391,17 @@ class LGPRBIntegrator(RBIntegrator):
             name = _lg_name(lgs, k)
             if not self.boundary:
                 continue
-            if depth >= 3 or (depth == 2 and delta):
+            needed = depth - 1 if depth != 0xFFFFFFFF else None   # bounces that see light
+            seen_after = depth >= 3 or (depth == 2 and delta)
+            n = self._bounces()
+            if seen_after and (needed is None or n < needed):
                 why = (f"max_depth {'-1' if depth == 0xFFFFFFFF else depth}" if depth >= 3 else
                        f"max_depth 2 and the delta or null BSDF of "
-                       f"{_shape_names(scene, delta)}")
-                out.append(f"lg_prb: silhouettes of the moving lgsurface {name} seen after a "
-                           f"bounce (in mirrors, through glass, in interreflections) get no "
+                       f"{_shape_names(scene, delta)}") + f", bounce_edges {self.bounce_edges}"
+                after = "after a bounce" if n == 0 else \
+                    f"after more than {n} bounce{'s' if n > 1 else ''}"
+                out.append(f"lg_prb: silhouettes of the moving lgsurface {name} seen {after} "
+                           f"(in mirrors, through glass, in interreflections) get no "
                            f"boundary term ({why}): {left_out}")
             if _cut_by_box(lgs[k], self._cut):
                 out.append(f"lg_prb: the moving lgsurface {name} reaches its bounding box (f "
@@ -487,10 +498,15 @@ class LGPRBIntegrator(RBIntegrator):
             # (evaluated once: the term's gradients would each launch the
             # paths again)
             dr.eval(jump)
+            # the silhouettes seen after a bounce, along the same camera rays
+            bounced = self._bounce_term(scene, moving, sampler, seen, hit, weight,
+                                        dr.detach(hit.t) + skipped, leaves)
             block = film.create_block()
             block.set_coalesce(block.coalesce() and spp >= 4)
             with dr.resume_grad():
                 term = jump * dr.select(band, -S, 0.0)
+                if bounced is not None:
+                    term = term + bounced
                 if mode == dr.ADMode.Backward:
                     # the samples' adjoints: grad_in through the splat and
                     # the weight division (as RBIntegrator.render_backward)
@@ -513,6 +529,94 @@ class LGPRBIntegrator(RBIntegrator):
             film.put_block(block)
             return film.develop()
 
+    def _bounces(self):
+        """How many bounces of each path get the term of the silhouettes
+        they see (:meth:`_bounce_term`): the vertices i = 0 (the camera's
+        hit) .. n - 1 whose sampled ray can bring light (i + 1 <
+        ``max_depth``: emission after a delta BSDF), at most
+        ``bounce_edges``."""
+        depth = self.max_depth
+        reach = self.bounce_edges if depth == 0xFFFFFFFF else max(0, depth - 1)
+        return min(reach, self.bounce_edges)
+
+    def _bounce_term(self, scene, moving, sampler, ray, hit, weight, distance, leaves):
+        """The boundary term of the silhouettes of moving lgsurfaces seen
+        after a bounce, along the camera samples (``ray``, its first
+        ``hit``, the sensor's ``weight``): a term of value 0 whose
+        derivative is theirs, per camera sample (None where no bounce can
+        see one: :meth:`_bounces`).
+
+        The path is continued by BSDF sampling (a sampler of its own: the
+        term is an estimator of its own, as the primary silhouettes'). At
+        vertex i, the sampled ray that hits a moving lgsurface inside the
+        band of its silhouette (S < 0, :meth:`LGSurface.silhouette`; the
+        band ``band_width`` pixels' angle at the distance travelled from
+        the camera) brings L_s where the ray continued past the surface's
+        exit brings L_b, both one primal path with the depth left: the
+        term is beta_i f_i / pdf_i (L_s - L_b) w (-dS), as on the camera's
+        rays. After a smooth BSDF, L_s and L_b leave out the emission at
+        their first hit (the edge of that light is the emitter samples'
+        shadow-edge term, whole: counting it here too would count it
+        twice); after a delta or null one (a mirror, glass) they keep it.
+        S follows the surface's parameters and the vertex's motion with its
+        own surface (the sampled direction fixed in the world); that the
+        vertex also slides as the vertices before it move is left out.""" 
+        n = self._bounces()
+        if n == 0:
+            return None
+        lgs = common.lg_shapes(scene)
+        ctx = mi.BSDFContext()
+        beta = mi.Spectrum(weight)
+        dist = mi.Float(distance)
+        active = hit.is_valid()
+        total = mi.Spectrum(0.0)
+        for i in range(n):
+            si = compute_interaction(scene, ray, hit, active=active)
+            bsdf = si.bsdf(ray)
+            bs, bsdf_w = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active),
+                                     active)
+            active &= (bs.pdf > 0) & dr.any(bsdf_w != 0)
+            delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            nxt = si.spawn_ray(si.to_world(bs.wo))
+            hit_n = ray_intersect_preliminary(scene, nxt, active)
+            # a smooth vertex's ray brings reflected light only: a vertex after it
+            # must have a bounce left (i + 2 < max_depth)
+            lit = active & (delta | (i + 2 < self.max_depth))
+            width = self._band(dist + dr.detach(hit_n.t), *self._pixel)
+            S, w = mi.Float(0), mi.Float(0)
+            t_exit, band = mi.Float(dr.inf), mi.Bool(False)
+            with dr.resume_grad():
+                # the vertex as it moves with its own surface's parameters
+                moving_ray = mi.Ray3f(nxt)
+                moving_ray.o = compute_interaction(scene, ray, hit, mi.RayFlags.Minimal,
+                                                   active).p
+                if not dr.grad_enabled(moving_ray.o):
+                    moving_ray = None
+            for k in moving:
+                mine = lit & (hit_n.lg == k + 1)
+                with dr.resume_grad():
+                    S_k, w_k, te_k, band_k = lgs[k].silhouette(nxt, hit_n.t, width, mine, leaves,
+                                                               moving_ray=moving_ray)
+                    S = dr.select(mine, S_k, S)
+                w, t_exit, band = (dr.select(mine, v, u) for v, u in
+                                   ((w_k, w), (te_k, t_exit), (band_k, band)))
+            left = self.max_depth if self.max_depth == 0xFFFFFFFF else self.max_depth - (i + 1)
+            L_s = self.sample(dr.ADMode.Primal, scene, sampler, nxt, None, None, band,
+                              max_depth=left, emission=delta, camera=False)[0]
+            behind = mi.Ray3f(nxt)
+            behind.o = mi.Point3f(nxt(t_exit))
+            L_b = self.sample(dr.ADMode.Primal, scene, sampler, behind, None, None, band,
+                              max_depth=left, emission=delta, camera=False)[0]
+            jump = dr.select(band, beta * bsdf_w * (L_s - L_b) * w, 0.0)
+            beta = beta * bsdf_w
+            dist = dist + dr.detach(hit_n.t)
+            ray, hit = nxt, hit_n
+            active &= hit_n.is_valid()
+            dr.eval(jump, beta, dist, active)
+            with dr.resume_grad():
+                total = total + jump * dr.select(band, -S, 0.0)
+        return total
+
     @staticmethod
     def _splat(block, film, pos, value, ray):
         from mitsuba.python.ad.integrators.common import ADIntegrator
@@ -521,7 +625,8 @@ class LGPRBIntegrator(RBIntegrator):
 
     @dr.syntax
     def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
-               δL, state_in, active: mi.Bool, **kwargs):
+               δL, state_in, active: mi.Bool, max_depth=None, emission=True, camera=True,
+               **kwargs):
         """One pass of path replay (``mode``: primal, backward or forward;
         see ``ADIntegrator.sample``). The primal pass returns the radiance
         and, as its state, (radiance, the path's record: :class:`PathRecord`,
@@ -530,8 +635,15 @@ class LGPRBIntegrator(RBIntegrator):
         contribution from the primal radiance in ``state_in`` to know what
         the rest of the path brings, taking the record's hits and
         visibilities instead of tracing them again, and propagate ``δL``
-        through each vertex's differentiable terms."""
+        through each vertex's differentiable terms.
+
+        :meth:`_bounce_term` starts primal paths after a bounce:
+        ``max_depth`` (the depth left), ``emission`` (where False, the
+        emission at the ray's first hit is left out: its edge is another
+        term's) and ``camera`` False (``hide_emitters`` does not apply)."""
         primal = mode == dr.ADMode.Primal
+        max_depth = self.max_depth if max_depth is None else max_depth
+        hide_emitters = self.hide_emitters and camera
         bsdf_ctx = mi.BSDFContext()
 
         # --------------------- Configure loop state ----------------------
@@ -540,19 +652,19 @@ class LGPRBIntegrator(RBIntegrator):
         L = mi.Spectrum(0 if primal else state_in[0])        # Radiance (left to replay)
         # The primal pass's record of the path (PathRecord): the replay
         # takes its hits and shadow tests from it instead of tracing again
-        rec = PathRecord(self.max_depth, len(common.lg_shapes(scene)))
+        rec = PathRecord(max_depth, len(common.lg_shapes(scene)))
         record = rec.new() if primal else rec.resumed(state_in[1])
         vertex = mi.UInt32(0)                                # Vertex index
         δL = mi.Spectrum(δL if δL is not None else 0)        # Adjoint radiance
         β = mi.Spectrum(1)                                   # Path throughput
         η = mi.Float(1)                                      # Relative IOR
         active = mi.Bool(active)
-        valid_ray = mi.Bool(not self.hide_emitters and scene.environment() is not None)
+        valid_ray = mi.Bool(not hide_emitters and scene.environment() is not None)
         # The camera ray's hit (past the emitters it hides): the primal pass
         # hands it to the replay with the record
         if dr.hint(primal, mode="scalar"):
             hit = ray_intersect_preliminary(scene, ray, active)
-            if dr.hint(self.hide_emitters, mode="scalar"):
+            if dr.hint(hide_emitters, mode="scalar"):
                 ray, hit = skip_area_emitters(scene, ray, hit, active)
         else:
             ray, hit = mi.Ray3f(state_in[2]), state_in[3]
@@ -572,7 +684,7 @@ class LGPRBIntegrator(RBIntegrator):
         bsdf_pdf_prev = mi.Float(1)                          # BSDF pdf,
         bsdf_delta_prev = mi.Bool(True)                      # delta BSDF?
 
-        while dr.hint(active, max_iterations=self.max_depth, label=f"lg_prb ({mode.name})"):
+        while dr.hint(active, max_iterations=max_depth, label=f"lg_prb ({mode.name})"):
             active_next = mi.Bool(active)
 
             # The vertex, following the shapes' parameters (and the previous
@@ -595,15 +707,15 @@ class LGPRBIntegrator(RBIntegrator):
             em_pdf = dr.select(bsdf_delta_prev, 0.0,
                                pdf_emitter_direction(scene, si_prev, ds, ~bsdf_delta_prev))
             mis = mis_weight(bsdf_pdf_prev, em_pdf)
-            seen = bsdf_pdf_prev > 0
-            if dr.hint(self.hide_emitters, mode="scalar"):
+            seen = (bsdf_pdf_prev > 0) & ((depth > 0) | emission)
+            if dr.hint(hide_emitters, mode="scalar"):
                 # the environment the camera ray escapes to is hidden too
                 # (area emitters it hits were skipped: skip_area_emitters)
                 seen &= (depth > 0) | si.is_valid()
             with dr.resume_grad(when=not primal):
                 Le = β * mis * ds.emitter.eval(si, seen)
 
-            active_next &= (depth + 1 < self.max_depth) & si.is_valid()
+            active_next &= (depth + 1 < max_depth) & si.is_valid()
 
             # ---------------------- Emitter sampling ----------------------
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)

@@ -95,14 +95,15 @@ def said(fn):
     return [str(w.message) for w in seen if issubclass(w.category, LGShapeWarning)]
 
 
-BOUNCE = "seen after a bounce (in mirrors, through glass, in interreflections)"
+BOUNCE = "(in mirrors, through glass, in interreflections)"
 CUT = "reaches its bounding box"
 
 
 @pytest.mark.parametrize("name, options, key, expected", [
-    ("bounced", {"max_depth": 3}, "r", [BOUNCE, "max_depth 3"]),
+    ("bounced", {"max_depth": 4, "bounce_edges": 2}, "r", [BOUNCE, "max_depth 4"]),
     ("unbounded", {"max_depth": -1}, "r", [BOUNCE, "max_depth -1"]),
-    ("mirrored", {"mirror": True}, "r", [BOUNCE, "delta or null BSDF of 'mirror'"]),
+    ("mirrored", {"mirror": True, "bounce_edges": 0}, "r",
+     [BOUNCE, "delta or null BSDF of 'mirror'"]),
     ("sheet", {"sheet": True}, "c", [CUT]),
 ])
 def test01_each_left_out_term_is_said_once(name, options, key, expected):
@@ -133,6 +134,7 @@ def test01_each_left_out_term_is_said_once(name, options, key, expected):
      "c"),
     ("no_edges", {"lamp": True, "shadow_edges": False}, "r"),
     ("glowing", {"emits": True}, "r"),                   # its light follows it (test_61)
+    ("reflected", {"max_depth": 3, "mirror": True}, "r"),  # bounce_edges 2 (test_62)
     ("shading", {"lamp": True}, "r"),                    # its shadows on the lamp too
 ])
 def test02_nothing_said_where_nothing_is_left_out(name, options, key):
@@ -143,7 +145,8 @@ def test02_nothing_said_where_nothing_is_left_out(name, options, key):
     # only (no moving lgsurface); boundary terms off (none is asked for);
     # shadow edges off; an emitting lgsurface that moves, or one that
     # lights a moving one, at max_depth 2 (its light's interior and edge
-    # terms are computed: test_61).
+    # terms are computed: test_61); max_depth 3 with a mirror, whose two
+    # bounces have the bounce term (bounce_edges 2: test_62).
     s = scene(name, **options)
     key = {"obj": f"{name}.r", "bsdf": "floor.bsdf.reflectance.value"}.get(key, f"{name}.{key}")
     params = moving(s, key)
