@@ -268,10 +268,12 @@ class LGPRBIntegrator(RBIntegrator):
     and the edge of its light seen from each shading point, its silhouette
     and the shadows moving lgsurfaces cast on it, has its boundary term
     (:meth:`_light_edges`, over ``light_band`` of the light's angular
-    radius). Left out: silhouettes seen after a bounce (the moving
-    lgsurface in front of other surfaces, lit or not, in indirect light),
-    and native shapes' boundaries (``prb`` leaves all boundaries out); a
-    gradient pass says so once (:meth:`uncovered`).
+    radius). Silhouettes seen after a bounce (in mirrors, through glass, in
+    interreflections) have theirs for ``bounce_edges`` bounces
+    (:meth:`_bounce_term`). Left out: silhouettes seen after more bounces,
+    edges where a surface is cut by its box (a gradient pass says so once:
+    :meth:`uncovered`), and native shapes' boundaries (``prb`` leaves all
+    boundaries out).
     Participating media are ignored (and a scene with some warns).
 
     .. tabs::

@@ -90,9 +90,9 @@ def quick(tmp_path_factory):
     """One `lgshape bench --quick` run through the command line."""
     from lgshape.cli import main
     out = tmp_path_factory.mktemp("bench")
-    # (the speed, scale and temporal sections have their own tests)
+    # (the speed, scale, temporal and projective sections have their own tests)
     assert main(["bench", "--quick", "--no-speed", "--no-scale", "--no-temporal",
-                 "--out", str(out)]) == 0
+                 "--no-projective", "--out", str(out)]) == 0
     with open(out / "results.json") as fh:
         return out, json.load(fh)
 

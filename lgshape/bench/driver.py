@@ -19,7 +19,7 @@ import time
 
 from . import stability
 from ..surfaces import LIBRARY
-from . import conformance, scale, speed, temporal
+from . import conformance, projective, scale, speed, temporal
 from .accuracy import (DEFAULT_LG, FULL, QUICK, accuracy_subset, bench_surface,
                        stability_runners)
 from .common import VARIANT, finite, git_commit, machine, stderr_log
@@ -53,6 +53,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-conformance", dest="conformance", action="store_false",
                    help="skip the conformance section (the lg integrators against Mitsuba's, "
                    "pixel by pixel, on scenes with native twins)")
+    p.add_argument("--no-projective", dest="projective", action="store_false",
+                   help="skip the gradients section (lg_prb on implicit surfaces against "
+                   "Mitsuba's prb_projective on their marching-cubes meshes: error against "
+                   "finite differences, standard error, cost of the gradient pass)")
     return p
 
 
@@ -101,6 +105,8 @@ def main(argv=None) -> int:
         temporal.chart(results["temporal"], os.path.join(args.out, "charts", "temporal.png"))
     if args.conformance:
         results["conformance"] = conformance.run(log, quick=args.quick)
+    if args.projective:
+        results["projective"] = projective.run(log, quick=args.quick)
     written = charts(records, args.out)
     results["meta"]["seconds"] = round(time.perf_counter() - t_start, 1)
     with open(os.path.join(args.out, "results.json"), "w") as fh:
@@ -110,7 +116,9 @@ def main(argv=None) -> int:
                     scale.report(results["scale"], meta["res"]) if results.get("scale") else [],
                     temporal.report(results["temporal"]) if results.get("temporal") else [],
                     conformance.report(results["conformance"])
-                    if results.get("conformance") else []]
+                    if results.get("conformance") else [],
+                    projective.report(results["projective"])
+                    if results.get("projective") else []]
         fh.write(report(results, command, written, sections, DEFAULT_LG))
     log(f"wrote {os.path.join(args.out, 'results.json')}, BENCHMARKS.md and {len(written)} charts")
     return 0
