@@ -199,10 +199,13 @@ def check_gradients(scene, integrator=None):
     if not keys:
         return
     names = ", ".join(f"'{k}'" for k in keys)
+    media = ("; 'lg_prb' leaves the scene's media out: no lgshape integrator differentiates "
+             "shapes in a scene with media yet"
+             if integrator_name(integrator) in ("lg_volpath", "lg_prbvolpath") else "")
     raise NotDifferentiableError(
         f"gradients are enabled on {names}, but the integrator "
         f"'{integrator_name(integrator)}' does not differentiate lgsurface parameters "
-        f"(their gradients would stay 0): render with 'lg_prb', or call "
+        f"(their gradients would stay 0): render with 'lg_prb'{media}, or call "
         f"dr.disable_grad() on them")
 
 

@@ -96,9 +96,9 @@ class LGPRBVolpathIntegrator(RBIntegrator):
             names = ", ".join(f"'{k}'" for k in keys)
             raise NotDifferentiableError(
                 f"lg_prbvolpath differentiates media, BSDF, phase and emitter parameters, but "
-                f"a gradient was asked for the shape or sensor parameters {names}: render "
-                f"shape gradients with 'lg_prb' (which ignores media), or call "
-                f"dr.disable_grad() on them")
+                f"a gradient was asked for the shape or sensor parameters {names}; no lgshape "
+                f"integrator differentiates shapes in a scene with media yet: 'lg_prb' gives "
+                f"shape gradients with the media left out, or call dr.disable_grad() on them")
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         common.check(self, scene, sensor)
