@@ -225,7 +225,8 @@ class LGPRBIntegrator(RBIntegrator):
        - Width, in pixels, of the band inside each silhouette over which
          that term is relaxed: its bias grows with the band against the
          silhouette's curvature radius (in pixels), its variance as the band
-         narrows. (Default: 1)
+         narrows. The edges of shadows get twice that, in pixels at the
+         shaded point. (Default: 1)
      * - bounce_edges
        - |int|
        - How many bounces of each path add the boundary term of the moving
@@ -260,10 +261,11 @@ class LGPRBIntegrator(RBIntegrator):
     so shading, normals, emitter terms and the next bounce carry the
     derivatives. The primary silhouettes of moving lgsurfaces add their
     boundary term (:meth:`_silhouettes`: relaxed over a band of
-    ``band_width`` pixels, sampled by a second set of camera rays), and so
-    do the shadow edges they cast on the emitter samples, at every vertex
-    (:meth:`_shadow_edge`: the same relaxation, over ``band_width`` pixels'
-    angle at the occluder). The light of an emitting lgsurface follows its
+    ``band_width`` pixels, sampled by a second set of camera rays, stratified
+    over each pixel: :meth:`_stratified_rays`), and so do the shadow edges
+    they cast on the emitter samples, at every vertex (:meth:`_shadow_edge`:
+    relaxed over twice ``band_width`` pixels at the shaded point, carried to
+    the occluder). The light of an emitting lgsurface follows its
     shape: its cone samples are re-attached (:meth:`_cone_sample_interior`)
     and the edge of its light seen from each shading point, its silhouette
     and the shadows moving lgsurfaces cast on it, has its boundary term
@@ -291,6 +293,11 @@ class LGPRBIntegrator(RBIntegrator):
     """
 
     PLUGIN = "lg_prb"                   # the plugin name (:func:`.checks.integrator_name`)
+    #: The shadow edges' band against a silhouette's (:meth:`_shadow_edge`):
+    #: their weight (:func:`.lgsurface.edge_weight`) cancels the band's slope,
+    #: so a wider band costs less bias there, and the band on the shading
+    #: points is what their variance depends on.
+    SHADOW_BAND = 2.0
     SEES_LGSURFACES = True              # traces lgsurfaces (:func:`.checks.sees_lgsurfaces`)
     DIFFERENTIATES_LGSURFACES = True    # (:func:`.checks.differentiates_lgsurfaces`)
 
@@ -467,7 +474,7 @@ class LGPRBIntegrator(RBIntegrator):
         with dr.suspend_grad(), common.traced_searches(scene):
             sampler, spp = self.prepare(sensor, mi.sample_tea_32(seed, 0x51)[0], spp,
                                         self.aov_names())
-            ray, weight, pos = self.sample_rays(scene, sensor, sampler)
+            ray, weight, pos = self._stratified_rays(scene, sensor, sampler, seed)
             hit = ray_intersect_preliminary(scene, ray)
             # the camera ray as the paths see it: past the area emitters it
             # hides (skip_area_emitters), `skipped` further from the camera
@@ -530,6 +537,46 @@ class LGPRBIntegrator(RBIntegrator):
             self._splat(block, film, pos, δ, ray)
             film.put_block(block)
             return film.develop()
+
+    def _stratified_rays(self, scene, sensor, sampler, seed):
+        """The silhouette term's camera rays: ``sample_rays``'s, but with each
+        pixel's spp film positions jittered over a k x k grid of its cells
+        (k^2 >= spp; which cells, a random permutation per pixel and seed):
+        each position is uniform over the pixel, as sample_rays's, and the
+        fraction of a pixel's samples that fall in a silhouette's band varies
+        far less from pixel to pixel. Films that sample a border take
+        sample_rays's own positions."""
+        film = sensor.film()
+        spp = sampler.sample_count()
+        if film.sample_border() or spp < 2:
+            return self.sample_rays(scene, sensor, sampler)
+        size = film.crop_size()
+        k = 1
+        while k * k < spp:
+            k += 1
+        index = dr.arange(mi.UInt32, dr.prod(size) * spp)
+        pixel = index // dr.opaque(mi.UInt32, spp)
+        j = index - pixel * dr.opaque(mi.UInt32, spp)
+        cell = mi.permute_kensler(j, k * k, mi.sample_tea_32(pixel, mi.UInt32(seed) ^ 0x5EED)[0])
+        xi = sampler.next_2d()
+        y = pixel // dr.opaque(mi.UInt32, size[0])
+        x = pixel - y * dr.opaque(mi.UInt32, size[0])
+        col = cell % k
+        row = cell // k
+        pos = mi.Vector2f(mi.Float(x) + (mi.Float(col) + xi.x) / k,
+                          mi.Float(y) + (mi.Float(row) + xi.y) / k)
+        aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.0)
+        time = sensor.shutter_open()
+        if sensor.shutter_open_time() > 0:
+            time += sampler.next_1d() * sensor.shutter_open_time()
+        wavelength = sampler.next_1d() if mi.is_spectral else 0.0
+        with dr.resume_grad():
+            ray, weight = sensor.sample_ray_differential(
+                time, wavelength, pos / mi.ScalarVector2f(size), aperture)
+        # (a box filter splats at the pixel, as sample_rays does)
+        splat = (mi.Vector2f(mi.Float(x), mi.Float(y)) if film.rfilter().is_box_filter()
+                 else pos) + mi.Vector2f(film.crop_offset())
+        return ray, weight, splat
 
     def _bounces(self):
         """How many bounces of each path get the term of the silhouettes
@@ -679,6 +726,7 @@ class LGPRBIntegrator(RBIntegrator):
             with dr.resume_grad():
                 moving = self._moving(scene)
 
+        travelled = mi.Float(0)                              # Path length to the vertex
         ray_prev = mi.Ray3f(ray)                             # The previous vertex:
         hit_prev = Hit(pi=dr.zeros(mi.PreliminaryIntersection3f), lg=mi.UInt32(0),
                        t=mi.Float(dr.inf))                  # its hit,
@@ -753,7 +801,8 @@ class LGPRBIntegrator(RBIntegrator):
                     # term has no BSDF-sampled counterpart here), times the
                     # band's weight, moving with the edge's distance S
                     w_e, S_e = self._shadow_edge(scene, si, ds,
-                                                 sampled & ~active_em & ~tested, moving)
+                                                 sampled & ~active_em & ~tested, moving,
+                                                 travelled + dr.detach(hit.t))
                     Lr_dir = Lr_dir + dr.detach(β * bsdf_val * em_weight * w_e) * \
                         (S_e - dr.detach(S_e))
                 if dr.hint(light_edges is not None, mode="scalar"):
@@ -795,6 +844,7 @@ class LGPRBIntegrator(RBIntegrator):
                                      Le, Lr_dir, δL, active_next, moves)
 
             # ------------------------ The next vertex ------------------------
+            travelled += dr.select(si.is_valid(), dr.detach(hit.t), 0.0)
             ray_prev, hit_prev = ray, hit
             si_prev = dr.detach(si, True)
             bsdf_pdf_prev = bs.pdf
@@ -804,28 +854,38 @@ class LGPRBIntegrator(RBIntegrator):
 
         return (L if primal else δL, valid_ray, [], (L, rec.handed_over(record), *first))
 
-    def _shadow_edge(self, scene, si, ds, shadowed, moving):
+    def _shadow_edge(self, scene, si, ds, shadowed, moving, distance):
         """The shadow edges' boundary term at a vertex, for its emitter
         samples that an lgsurface in ``moving`` (scene indices) occludes:
         (w, S). Along the shadow ray, the occluder's S (its silhouette's
         distance proxy, :meth:`LGSurface.silhouette`, attached to its
-        parameters) and the band's weight w (``band_width`` pixels' angle at
-        the occluder's distance; 0 where the ray is deep in the solid, or
-        something else occludes it behind the occluder's exit). The sample's
+        parameters) and the band's weight w (:func:`.lgsurface.edge_weight`:
+        what the sample would bring unoccluded varies smoothly across the
+        band; 0 where the ray is deep in the solid, or something else
+        occludes it behind the occluder's exit). The band is
+        :attr:`SHADOW_BAND` times ``band_width`` pixels at the shading point,
+        ``distance`` along the path from the camera, carried along the shadow
+        rays to the occluder (which narrow towards a light sample at finite
+        distance): the shadow's edge is then about as wide on the image as
+        twice a silhouette's band. The sample's
         visibility V = [S > 0] moves by delta(S) dS, relaxed to w dS; S
         follows the occluder's parameters and the motion of the shading
         point and the light sample."""
+        from .lgsurface import edge_weight
         lgs = common.lg_shapes(scene)
         moving_ray = si.spawn_ray_to(ds.p)          # (attached where its ends move)
         ray = dr.detach(moving_ray)
         hit = ray_intersect_preliminary(scene, ray, shadowed)
-        width = self._band(hit.t * dr.norm(ray.d), *self._pixel)
+        # (the shadow ray's t runs from 0 at the vertex to 1 at the light sample)
+        width = self.SHADOW_BAND * self._band(distance, *self._pixel) * \
+            dr.maximum(1.0 - hit.t, 0.0)
         w, S = mi.Float(0), mi.Float(0)
         for k in moving:
             mine = shadowed & (hit.lg == k + 1)
             with dr.resume_grad():
                 S_k, w_k, t_exit, band = lgs[k].silhouette(ray, hit.t, width, mine,
-                                                           moving_ray=moving_ray)
+                                                           moving_ray=moving_ray,
+                                                           weight=edge_weight)
                 S = dr.select(mine, S_k, S)
             band &= t_exit < ray.maxt
             behind = mi.Ray3f(ray)
@@ -924,7 +984,8 @@ class LGPRBIntegrator(RBIntegrator):
           brings f_behind (the emitter hit again: a non-convex emitter;
           usually 0). With H = [S < 0], f = H f_hit + (1 - H) f_behind
           moves by -(f_hit - f_behind) delta(S) dS, relaxed to the band's
-          weight w. The shape's parameters move the edge at the fixed
+          weight w (:func:`.lgsurface.edge_weight`: the emission varies
+          smoothly across the band). The shape's parameters move the edge at the fixed
           sampled direction (S of the fixed ray); the shading point's
           motion is the area form's (:meth:`_attach_emitter_sample`: the
           sample point fixed), in which only the hidden part f_behind has
@@ -943,6 +1004,7 @@ class LGPRBIntegrator(RBIntegrator):
         their own: this one is the whole integrand's, not its MIS share."""
         if not self.boundary:
             return None
+        from .lgsurface import edge_weight
         lgs = common.lg_shapes(scene)
         with dr.resume_grad():
             moving = self._moving(scene)
@@ -971,7 +1033,8 @@ class LGPRBIntegrator(RBIntegrator):
             mine = lanes & (cone.lg == k + 1) & \
                 ((is_own & (k in own)) | (~is_own & (k in occluders)))
             with dr.resume_grad():
-                S_1, w, t_exit, band = lgs[k].silhouette(ray, cone.t, width, mine)
+                S_1, w, t_exit, band = lgs[k].silhouette(ray, cone.t, width, mine,
+                                                         weight=edge_weight)
             behind = mi.Ray3f(ray)
             behind.o = mi.Point3f(ray(t_exit))
             behind.maxt = dr.largest(mi.Float)
