@@ -557,7 +557,9 @@ class LGPRBIntegrator(RBIntegrator):
         index = dr.arange(mi.UInt32, dr.prod(size) * spp)
         pixel = index // dr.opaque(mi.UInt32, spp)
         j = index - pixel * dr.opaque(mi.UInt32, spp)
-        cell = mi.permute_kensler(j, k * k, mi.sample_tea_32(pixel, mi.UInt32(seed) ^ 0x5EED)[0])
+        seed = mi.UInt32(seed) ^ 0x5EED
+        dr.make_opaque(seed)                # (a new seed compiles no new kernel)
+        cell = mi.permute_kensler(j, k * k, mi.sample_tea_32(pixel, seed)[0])
         xi = sampler.next_2d()
         y = pixel // dr.opaque(mi.UInt32, size[0])
         x = pixel - y * dr.opaque(mi.UInt32, size[0])
