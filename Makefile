@@ -18,7 +18,10 @@ render: $(VENV)/.installed
 # pytest exits 5 when it collected no tests: a failure for this suite.
 test: $(VENV)/.installed
 	@$(VENV)/bin/python -m pytest -q; rc=$$?; \
-	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
+	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; \
+	if [ $$rc -gt 128 ] && [ -f .pytest_cache/lgshape-current-test ]; then \
+	  echo "pytest died of signal $$((rc - 128)) in $$(cat .pytest_cache/lgshape-current-test)"; fi; \
+	exit $$rc
 
 bench: $(VENV)/.installed
 	$(VENV)/bin/lgshape bench --quick --out bench-out

@@ -89,3 +89,45 @@ def sensor_xml(origin, target="0, 0, 0", up="0, 1, 0", fov="40", width="$res", h
             <rfilter type="box"/>
         </film>
     </sensor>"""
+
+
+# --- Diagnostics for CI, whose log keeps only its tail ---------------------
+# Each test's node id is written to .pytest_cache/lgshape-current-test when
+# it starts (the Makefile prints it when pytest dies of a signal), and the
+# innermost exception of every failure is repeated at the end of the run
+# (Dr.Jit's loops re-raise "encountered an exception (see above)", whose
+# cause the tail would lose).
+_CURRENT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                        ".pytest_cache", "lgshape-current-test")
+_ROOT_CAUSES = []
+
+
+def pytest_runtest_logstart(nodeid, location):
+    try:
+        os.makedirs(os.path.dirname(_CURRENT), exist_ok=True)
+        with open(_CURRENT, "w") as f:
+            f.write(nodeid + "\n")
+    except OSError:
+        pass
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed and call.excinfo is not None:
+        exc, seen = call.excinfo.value, set()
+        chain = []
+        while exc is not None and id(exc) not in seen:
+            seen.add(id(exc))
+            chain.append(f"{type(exc).__name__}: {str(exc).strip()[:600]}")
+            exc = exc.__cause__ or exc.__context__
+        if len(chain) > 1:
+            _ROOT_CAUSES.append((item.nodeid, chain[-1]))
+
+
+def pytest_terminal_summary(terminalreporter):
+    if _ROOT_CAUSES:
+        terminalreporter.section("innermost exceptions of the failures")
+        for nodeid, cause in _ROOT_CAUSES:
+            terminalreporter.write_line(f"{nodeid}: {cause}")
