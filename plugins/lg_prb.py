@@ -476,6 +476,7 @@ class LGPRBIntegrator(RBIntegrator):
                                         self.aov_names())
             ray, weight, pos = self._stratified_rays(scene, sensor, sampler, seed)
             hit = ray_intersect_preliminary(scene, ray)
+            dr.eval(ray, weight, hit.pi, hit.lg, hit.t)     # (not searched again by each use)
             # the camera ray as the paths see it: past the area emitters it
             # hides (skip_area_emitters), `skipped` further from the camera
             seen = mi.Ray3f(ray)
@@ -499,17 +500,16 @@ class LGPRBIntegrator(RBIntegrator):
                     S = dr.select(mine, S_k, S)
                 w, t_exit, band = (dr.select(mine, v, u) for v, u in
                                    ((w_k, w), (te_k, t_exit), (band_k, band)))
-            L_s = self.sample(dr.ADMode.Primal, scene, sampler, seen, None, None, band)[0]
             behind = mi.Ray3f(seen)
             behind.o = mi.Point3f(seen(t_exit))
-            L_b = self.sample(dr.ADMode.Primal, scene, sampler, behind, None, None, band)[0]
+            L_s, L_b = self._band_paths(scene, band, (seen, behind), seed, 0)
             jump = dr.select(band, (L_s - L_b) * weight * w, 0.0)
             # (evaluated once: the term's gradients would each launch the
             # paths again)
             dr.eval(jump)
             # the silhouettes seen after a bounce, along the same camera rays
             bounced = self._bounce_term(scene, moving, sampler, seen, hit, weight,
-                                        dr.detach(hit.t) + skipped, leaves)
+                                        dr.detach(hit.t) + skipped, leaves, seed)
             block = film.create_block()
             block.set_coalesce(block.coalesce() and spp >= 4)
             with dr.resume_grad():
@@ -590,7 +590,39 @@ class LGPRBIntegrator(RBIntegrator):
         reach = self.bounce_edges if depth == 0xFFFFFFFF else max(0, depth - 1)
         return min(reach, self.bounce_edges)
 
-    def _bounce_term(self, scene, moving, sampler, ray, hit, weight, distance, leaves):
+    def _band_paths(self, scene, band, rays, seed, salt, **kwargs):
+        """The primal radiance along each of ``rays`` on the ``band`` lanes
+        (0 elsewhere): one path sample each (``sample``'s, with ``kwargs``),
+        traced on those lanes alone, gathered into a wavefront of their own
+        with an independent sampler seeded from ``seed`` and ``salt`` (a
+        silhouette's band holds a small part of the lanes; paths traced over
+        all of them, masked, cost as much as the render itself)."""
+        width = dr.width(band)
+        out = [dr.zeros(mi.Spectrum, width) for _ in rays]
+        # (evaluated together: each gather would otherwise launch what they
+        # are computed from again)
+        dr.eval(band, rays, [v for v in kwargs.values() if dr.is_array_v(v)])
+        index = dr.compress(band)
+        n = dr.width(index)
+        if n == 0:
+            return out
+        if getattr(self, "_band_sampler", None) is None:
+            self._band_sampler = mi.load_dict({"type": "independent"})
+        sampler = self._band_sampler.clone()
+        value = mi.UInt32(mi.sample_tea_32(mi.UInt32(seed), mi.UInt32(0xB0 + salt))[0])
+        dr.make_opaque(value)               # (a new seed compiles no new kernel)
+        sampler.seed(value, n)
+        # per-lane arguments (``emission``) gathered with the rays
+        kwargs = {k: dr.gather(type(v), v, index) if dr.is_array_v(v) and dr.width(v) == width
+                  and width > 1 else v for k, v in kwargs.items()}
+        for L, ray in zip(out, rays):
+            sub = dr.gather(mi.Ray3f, ray, index)
+            L_sub = self.sample(dr.ADMode.Primal, scene, sampler, sub, None, None,
+                                mi.Bool(True), **kwargs)[0]
+            dr.scatter(L, L_sub, index)
+        return out
+
+    def _bounce_term(self, scene, moving, sampler, ray, hit, weight, distance, leaves, seed):
         """The boundary term of the silhouettes of moving lgsurfaces seen
         after a bounce, along the camera samples (``ray``, its first
         ``hit``, the sensor's ``weight``): a term of value 0 whose
@@ -652,18 +684,16 @@ class LGPRBIntegrator(RBIntegrator):
                 w, t_exit, band = (dr.select(mine, v, u) for v, u in
                                    ((w_k, w), (te_k, t_exit), (band_k, band)))
             left = self.max_depth if self.max_depth == 0xFFFFFFFF else self.max_depth - (i + 1)
-            L_s = self.sample(dr.ADMode.Primal, scene, sampler, nxt, None, None, band,
-                              max_depth=left, emission=delta, camera=False)[0]
             behind = mi.Ray3f(nxt)
             behind.o = mi.Point3f(nxt(t_exit))
-            L_b = self.sample(dr.ADMode.Primal, scene, sampler, behind, None, None, band,
-                              max_depth=left, emission=delta, camera=False)[0]
+            L_s, L_b = self._band_paths(scene, band, (nxt, behind), seed, 1 + i,
+                                        max_depth=left, emission=delta, camera=False)
             jump = dr.select(band, beta * bsdf_w * (L_s - L_b) * w, 0.0)
             beta = beta * bsdf_w
             dist = dist + dr.detach(hit_n.t)
             ray, hit = nxt, hit_n
             active &= hit_n.is_valid()
-            dr.eval(jump, beta, dist, active)
+            dr.eval(jump, beta, dist, active, ray, hit.pi, hit.lg, hit.t)
             with dr.resume_grad():
                 total = total + jump * dr.select(band, -S, 0.0)
         return total

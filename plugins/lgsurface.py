@@ -616,7 +616,7 @@ class LGSurface(mi.Mesh):
         if not dr.flag(dr.JitFlag.SymbolicScope):
             # (evaluated with the caller's next kernel: the derivatives'
             # kernels then do not search for the chord again)
-            dr.schedule(p_star, g_world, ok, S0)
+            dr.schedule(t_star, p_star, g_world, ok, S0)
         if self.gradient_keys():
             f, _, bound = self._ad_forms()
             Wa_inv = dr.rcp(mi.Matrix4f(self._to_world.matrix))
