@@ -232,6 +232,11 @@ class LGPRBIntegrator(RBIntegrator):
        - How many bounces of each path add the boundary term of the moving
          lgsurfaces' silhouettes they see (in mirrors, through glass, in
          interreflections; needs ``boundary``). 0 turns it off. (Default: 2)
+     * - band_paths
+       - |int|
+       - How many paths estimate the radiance on each side (L_s, L_b) of
+         a silhouette's band sample (the mean of them; traced on the band's
+         samples alone, they cost little). (Default: 8)
      * - light_band
        - |float|
        - Width of the band inside the edges of an emitting lgsurface's
@@ -309,10 +314,13 @@ class LGPRBIntegrator(RBIntegrator):
         self.band_width = float(props.get("band_width", 1.0))
         self.light_band = float(props.get("light_band", 0.05))
         self.bounce_edges = int(props.get("bounce_edges", 2))
+        self.band_paths = int(props.get("band_paths", 8))
         self._pixel = (0.0, 0.0)            # (angle, footprint): _pixel_spread
         self._cut = {}                      # shape -> (surface, cut by its box?): _cut_by_box
         if not self.band_width > 0:
             raise ValueError("lg_prb: 'band_width' must be > 0 (pixels)")
+        if self.band_paths < 1:
+            raise ValueError("lg_prb: 'band_paths' must be >= 1 (paths per band sample)")
         if self.bounce_edges < 0:
             raise ValueError("lg_prb: 'bounce_edges' must be >= 0 (a number of bounces)")
         if not 0 < self.light_band < 1:
@@ -592,8 +600,8 @@ class LGPRBIntegrator(RBIntegrator):
 
     def _band_paths(self, scene, band, rays, seed, salt, **kwargs):
         """The primal radiance along each of ``rays`` on the ``band`` lanes
-        (0 elsewhere): one path sample each (``sample``'s, with ``kwargs``),
-        traced on those lanes alone, gathered into a wavefront of their own
+        (0 elsewhere): the mean of ``band_paths`` path samples each
+        (``sample``'s, with ``kwargs``), traced on those lanes alone, gathered into a wavefront of their own
         with an independent sampler seeded from ``seed`` and ``salt`` (a
         silhouette's band holds a small part of the lanes; paths traced over
         all of them, masked, cost as much as the render itself)."""
@@ -611,15 +619,17 @@ class LGPRBIntegrator(RBIntegrator):
         sampler = self._band_sampler.clone()
         value = mi.UInt32(mi.sample_tea_32(mi.UInt32(seed), mi.UInt32(0xB0 + salt))[0])
         dr.make_opaque(value)               # (a new seed compiles no new kernel)
-        sampler.seed(value, n)
+        m = self.band_paths
+        sampler.seed(value, n * m)
         # per-lane arguments (``emission``) gathered with the rays
-        kwargs = {k: dr.gather(type(v), v, index) if dr.is_array_v(v) and dr.width(v) == width
+        lane = dr.gather(mi.UInt32, index, dr.arange(mi.UInt32, n * m) // m)
+        kwargs = {k: dr.gather(type(v), v, lane) if dr.is_array_v(v) and dr.width(v) == width
                   and width > 1 else v for k, v in kwargs.items()}
         for L, ray in zip(out, rays):
-            sub = dr.gather(mi.Ray3f, ray, index)
+            sub = dr.gather(mi.Ray3f, ray, lane)
             L_sub = self.sample(dr.ADMode.Primal, scene, sampler, sub, None, None,
                                 mi.Bool(True), **kwargs)[0]
-            dr.scatter(L, L_sub, index)
+            dr.scatter_add(L, L_sub * (1.0 / m), lane)
         return out
 
     def _bounce_term(self, scene, moving, sampler, ray, hit, weight, distance, leaves, seed):
