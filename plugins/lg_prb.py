@@ -390,10 +390,17 @@ class LGPRBIntegrator(RBIntegrator):
           ``bounce_edges``, the bounces whose silhouettes have their term
           (:meth:`_bounce_term`);
         - ``boundary`` is on and f changes sign on its box (:func:`_cut_by_box`):
-          the edges where the box cuts the surface have no boundary term.
+          the edges where the box cuts the surface have no boundary term;
+        - its BSDF has a delta reflection or transmission (a mirror, glass)
+          and paths go on after it (``max_depth`` >= 2): the replay moves
+          each vertex with its own surface, the direction to the next one
+          fixed in the world, so the turn of a mirror's reflected direction
+          as its normal moves is not followed (nor are the silhouettes seen
+          in it: :meth:`_bounce_term`). Said whether or not ``boundary`` is
+          on (it is an interior term).
 
         With ``boundary`` off, no boundary term at all is computed, as asked,
-        and nothing is said. (The light of an emitting lgsurface follows its
+        and only the last item is said. (The light of an emitting lgsurface follows its
         shape: :meth:`_cone_sample_interior`, :meth:`_light_edges`.)"""
         lgs = common.lg_shapes(scene)
         moving = self._moving(scene)
@@ -406,6 +413,13 @@ class LGPRBIntegrator(RBIntegrator):
         out = []
         for k in moving:
             name = _lg_name(lgs, k)
+            bsdf = lgs[k].bsdf()
+            turning = mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission
+            if bsdf is not None and (int(bsdf.flags()) & int(turning)) and depth >= 2:
+                out.append(f"lg_prb: the moving lgsurface {name} has a delta BSDF (a mirror, "
+                           f"glass): what is seen in it or through it does not follow the turn "
+                           f"of the reflected or refracted direction as its surface moves, nor "
+                           f"get the boundary term of the silhouettes seen there: {left_out}")
             if not self.boundary:
                 continue
             needed = depth - 1 if depth != 0xFFFFFFFF else None   # bounces that see light
@@ -652,8 +666,10 @@ class LGPRBIntegrator(RBIntegrator):
         shadow-edge term, whole: counting it here too would count it
         twice); after a delta or null one (a mirror, glass) they keep it.
         S follows the surface's parameters and the vertex's motion with its
-        own surface (the sampled direction fixed in the world); that the
-        vertex also slides as the vertices before it move is left out.""" 
+        own surface (the sampled direction fixed in the world), as each of
+        the replay's vertices moves with its own surface alone (its area
+        form: :meth:`_propagate`). A vertex on a moving lgsurface also sees
+        the silhouettes of static lgsurfaces move."""
         n = self._bounces()
         if n == 0:
             return None
@@ -685,8 +701,19 @@ class LGPRBIntegrator(RBIntegrator):
                                                    active).p
                 if not dr.grad_enabled(moving_ray.o):
                     moving_ray = None
+            # the silhouettes of moving lgsurfaces; where the vertex moves
+            # (it lies on one), those of the static ones too
+            on_moving = mi.Bool(False)
             for k in moving:
-                mine = lit & (hit_n.lg == k + 1)
+                on_moving |= hit.lg == k + 1
+            for k in range(len(lgs)):
+                if k not in moving and moving_ray is None:
+                    continue
+                # (after a delta BSDF the sampled direction turns with the
+                # moving vertex's normal, which S here does not follow: left
+                # out, and said, by uncovered)
+                mine = lit & (hit_n.lg == k + 1) & \
+                    ((on_moving & ~delta) if k not in moving else True)
                 with dr.resume_grad():
                     S_k, w_k, te_k, band_k = lgs[k].silhouette(nxt, hit_n.t, width, mine, leaves,
                                                                moving_ray=moving_ray)
@@ -761,10 +788,11 @@ class LGPRBIntegrator(RBIntegrator):
             ray, hit = mi.Ray3f(state_in[2]), state_in[3]
         first = (mi.Ray3f(ray), hit)
 
-        # The shadow edges of moving lgsurfaces (_shadow_edge), replayed
+        # The shadow edges that lgsurfaces cast (_shadow_edge), replayed
         # (which move is known where gradients are not suspended)
-        moving = []
-        if dr.hint(not primal and self.boundary and self.shadow_edges, mode="scalar"):
+        moving = None
+        if dr.hint(not primal and self.boundary and self.shadow_edges
+                   and bool(common.lg_shapes(scene)), mode="scalar"):
             with dr.resume_grad():
                 moving = self._moving(scene)
 
@@ -832,19 +860,24 @@ class LGPRBIntegrator(RBIntegrator):
 
             # ------ Evaluate BSDF * cos(theta) and sample a direction ------
             sample_1, sample_2 = sampler.next_1d(), sampler.next_2d()
+            # the shadowed samples near the edge of an lgsurface that moves,
+            # or that the shadow ray's ends move against (None: none)
+            edge = None
+            if dr.hint(moving is not None, mode="scalar"):
+                with dr.resume_grad():
+                    edge = self._shadow_edge(scene, si, ds, sampled & ~active_em & ~tested,
+                                             moving, travelled + dr.detach(hit.t))
             with dr.resume_grad(when=not primal):
                 bsdf_val, bsdf_pdf = bsdf.eval_pdf(bsdf_ctx, si, wo,
-                                                   sampled if moving else active_em)
+                                                   sampled if edge is not None else active_em)
                 mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
                 Lr_dir = dr.select(active_em, β * mis_em * bsdf_val * em_weight, 0.0)
-                if dr.hint(bool(moving), mode="scalar"):
-                    # the shadowed samples near a moving lgsurface's edge: what
-                    # they would bring unoccluded (all of it: the boundary
-                    # term has no BSDF-sampled counterpart here), times the
-                    # band's weight, moving with the edge's distance S
-                    w_e, S_e = self._shadow_edge(scene, si, ds,
-                                                 sampled & ~active_em & ~tested, moving,
-                                                 travelled + dr.detach(hit.t))
+                if dr.hint(edge is not None, mode="scalar"):
+                    # what they would bring unoccluded (all of it: the
+                    # boundary term has no BSDF-sampled counterpart here),
+                    # times the band's weight, moving with the edge's
+                    # distance S
+                    w_e, S_e = edge
                     Lr_dir = Lr_dir + dr.detach(β * bsdf_val * em_weight * w_e) * \
                         (S_e - dr.detach(S_e))
                 if dr.hint(light_edges is not None, mode="scalar"):
@@ -898,9 +931,12 @@ class LGPRBIntegrator(RBIntegrator):
 
     def _shadow_edge(self, scene, si, ds, shadowed, moving, distance):
         """The shadow edges' boundary term at a vertex, for its emitter
-        samples that an lgsurface in ``moving`` (scene indices) occludes:
-        (w, S). Along the shadow ray, the occluder's S (its silhouette's
-        distance proxy, :meth:`LGSurface.silhouette`, attached to its
+        samples that an lgsurface occludes: (w, S), or None where no edge
+        moves. The occluders are the lgsurfaces in ``moving`` (scene
+        indices) and, where the shadow ray's ends move (a moving shading
+        point or light sample), every lgsurface: a static occluder's edge
+        moves against a moving shading point too. Along the shadow ray, the
+        occluder's S (its silhouette's distance proxy, :meth:`LGSurface.silhouette`, attached to its
         parameters) and the band's weight w (:func:`.lgsurface.edge_weight`:
         what the sample would bring unoccluded varies smoothly across the
         band; 0 where the ray is deep in the solid, or something else
@@ -916,6 +952,10 @@ class LGPRBIntegrator(RBIntegrator):
         from .lgsurface import edge_weight
         lgs = common.lg_shapes(scene)
         moving_ray = si.spawn_ray_to(ds.p)          # (attached where its ends move)
+        if dr.grad_enabled(moving_ray.o) or dr.grad_enabled(moving_ray.d):
+            moving = range(len(lgs))
+        if not moving:
+            return None
         ray = dr.detach(moving_ray)
         hit = ray_intersect_preliminary(scene, ray, shadowed)
         # (the shadow ray's t runs from 0 at the vertex to 1 at the light sample)
@@ -1036,8 +1076,9 @@ class LGPRBIntegrator(RBIntegrator):
           behind. So w (-f_hit dS_1 + f_behind dS_2), S_1 of the fixed ray
           and S_2 of the ray from the moving si.p to the fixed point
           behind (both attached to the shape's parameters).
-        - The shadows that a moving lgsurface (``shadow_edges`` on) casts
-          on the samples: a sample whose ray it stops inside the band of
+        - The shadows that an lgsurface casts on the samples
+          (``shadow_edges`` on; a moving one, or any where the shading
+          point ``moves``): a sample whose ray it stops inside the band of
           its silhouette, and whose ray continued past its exit reaches
           the sampled emitter first, brings f_behind there: visibility
           [S > 0] moves by delta(S) dS, the term is w f_behind dS_2.
@@ -1052,7 +1093,9 @@ class LGPRBIntegrator(RBIntegrator):
             moving = self._moving(scene)
         emitting = [k for k, shape in enumerate(lgs) if shape.emitter() is not None]
         own = [k for k in emitting if moves or k in moving]
-        occluders = moving if self.shadow_edges else []
+        # (a static lgsurface's shadow on the light moves where the vertex does)
+        occluders = ([] if not self.shadow_edges else
+                     list(range(len(lgs))) if moves else moving)
         if not emitting or not (own or occluders):
             return None
         em_lg = mi.UInt32(0)                    # the sampled emitter's lgsurface (k + 1)

@@ -572,7 +572,8 @@ class LGSurface(mi.Mesh):
         in one kernel. ``moving_ray``: ``ray`` attached to what moves its
         ends (a shadow ray's shading point and light sample): S follows them
         too, at the chord's minimiser's fixed position along the ray (the
-        envelope theorem again); ``ray`` itself must then be detached."""
+        envelope theorem again), on a surface whose own parameters have no
+        gradients as well; ``ray`` itself must then be detached."""
         active = mi.Bool(active) & dr.isfinite(t_hit)
         o, d = dr.detach(mi.Vector3f(ray.o)), dr.detach(mi.Vector3f(ray.d))
         # the exit: the next root after the hit
@@ -617,10 +618,13 @@ class LGSurface(mi.Mesh):
             # (evaluated with the caller's next kernel: the derivatives'
             # kernels then do not search for the chord again)
             dr.schedule(t_star, p_star, g_world, ok, S0)
-        if self.gradient_keys():
+        # a static surface's S moves only with the ray's ends (``moving_ray``)
+        ends_move = moving_ray is not None and (dr.grad_enabled(moving_ray.o)
+                                                or dr.grad_enabled(moving_ray.d))
+        if self.gradient_keys() or ends_move:
             f, _, bound = self._ad_forms()
             Wa_inv = dr.rcp(mi.Matrix4f(self._to_world.matrix))
-            if leaves is not None:
+            if leaves is not None and self.gradient_keys():
                 bound = {k: leaves.wide(v) for k, v in bound.items()}
                 Wa_inv = [[leaves.wide(Wa_inv[i][j]) for j in range(4)] for i in range(3)]
             m = DrJitMath(mi.Float, bound=bound)
