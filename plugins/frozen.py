@@ -23,7 +23,10 @@ What a recording may depend on, and how a change is noticed:
   rendered traced, not frozen; it is replayed only once a traced render
   left the key unchanged (the caches were warm).
 
-Renders that record derivatives are never frozen: only a render with
+A render that starts while another one runs on the same thread (a
+nested call) is traced: a frozen function must not record or replay
+inside another one's recording. Renders that record derivatives are
+never frozen: only a render with
 gradients suspended (``mi.render``'s primal render) is; gradient passes
 (Mitsuba's default ones render again with gradients on) are traced. Set
 ``LGSHAPE_NO_FREEZE=1`` to trace every render.
@@ -31,7 +34,9 @@ gradients suspended (``mi.render``'s primal render) is; gradient passes
 from __future__ import annotations
 
 import collections
+import contextlib
 import os
+import threading
 import weakref
 
 import drjit as dr
@@ -46,6 +51,19 @@ from .common import check, traced_searches
 LIMIT = 8
 #: The integrator's attribute that holds its recordings (:class:`_Recordings`).
 _SLOT = "_frozen_render"
+#: Per thread: how many renders of this module are running (a render that
+#: starts inside another one is traced, never frozen or recorded).
+_ACTIVE = threading.local()
+
+
+@contextlib.contextmanager
+def _entered():
+    depth = getattr(_ACTIVE, "depth", 0)
+    _ACTIVE.depth = depth + 1
+    try:
+        yield depth
+    finally:
+        _ACTIVE.depth = depth
 
 
 def enabled() -> bool:
@@ -153,7 +171,7 @@ def render(integrator, base, scene, sensor=0, seed=0, spp=0, develop=True, evalu
     (see the module's docstring; a frozen render's image is evaluated
     whatever ``evaluate`` says), with the lgsurfaces' searches traced into
     the render's kernels in either case."""
-    with traced_searches(scene):
+    with traced_searches(scene), _entered() as outer:
         # The sampler's state on entry, the same evaluated array in every
         # render (a frozen function would otherwise evaluate whatever the
         # last render left, in a kernel the first render did not have).
@@ -161,7 +179,7 @@ def render(integrator, base, scene, sensor=0, seed=0, spp=0, develop=True, evalu
         sampler.seed(0, 1)
         sampler.schedule_state()
         dr.eval()
-        if not (enabled() and develop and dr.is_jit_v(mi.Float)):
+        if outer or not (enabled() and develop and dr.is_jit_v(mi.Float)):
             return base(integrator, scene, sensor, seed, spp, develop, evaluate)
         if _recording_gradients():
             return base(integrator, scene, sensor, seed, spp, develop, evaluate)

@@ -169,3 +169,17 @@ def test04_plain_ad_after_frozen_renders(integrator, no_freeze):
         dr.backward(dr.mean(dr.ravel(mi.render(s, p, seed=3))))
         grads.append(np.array(dr.grad(p[key])))
     assert np.all(grads[0] != 0) and np.array_equal(grads[0], grads[1])
+
+
+def test05_a_nested_render_is_traced(no_freeze):
+    # Oracle: the traced render (LGSHAPE_NO_FREEZE=1). A render started
+    # while another render of the frozen module runs on this thread must
+    # neither replay nor record inside it.
+    from lgshape.plugins import frozen
+    s = scene({"type": "lg_path", "max_depth": 4})
+    warm, traced, replayed = replay_and_trace(s, no_freeze, seed=3)
+    assert replayed                     # outside a render, this key replays
+    with frozen._entered():
+        nested, nested_replayed = render(s, 3)
+    assert not nested_replayed
+    assert np.array_equal(nested, traced)
