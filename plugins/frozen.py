@@ -26,9 +26,9 @@ What a recording may depend on, and how a change is noticed:
 A render that starts while another one runs on the same thread (a
 nested call) is traced: a frozen function must not record or replay
 inside another one's recording. Renders that record derivatives are
-never frozen: only a render with
-gradients suspended (``mi.render``'s primal render) is; gradient passes
-(Mitsuba's default ones render again with gradients on) are traced. Set
+never frozen: only a render with gradients suspended (``mi.render``'s
+primal render) is; gradient passes (Mitsuba's default ones render again
+with gradients on) are traced. Set
 ``LGSHAPE_NO_FREEZE=1`` to trace every render.
 """
 from __future__ import annotations
@@ -58,6 +58,8 @@ _ACTIVE = threading.local()
 
 @contextlib.contextmanager
 def _entered():
+    """Counts a render as running on this thread; yields how many were
+    running before it."""
     depth = getattr(_ACTIVE, "depth", 0)
     _ACTIVE.depth = depth + 1
     try:

@@ -177,7 +177,7 @@ def test05_a_nested_render_is_traced(no_freeze):
     # neither replay nor record inside it.
     from lgshape.plugins import frozen
     s = scene({"type": "lg_path", "max_depth": 4})
-    warm, traced, replayed = replay_and_trace(s, no_freeze, seed=3)
+    _, traced, replayed = replay_and_trace(s, no_freeze, seed=3)
     assert replayed                     # outside a render, this key replays
     with frozen._entered():
         nested, nested_replayed = render(s, 3)
