@@ -613,12 +613,13 @@ class LGPRBIntegrator(RBIntegrator):
         return min(reach, self.bounce_edges)
 
     def _band_paths(self, scene, band, rays, seed, salt, **kwargs):
-        """The primal radiance along each of ``rays`` on the ``band`` lanes
-        (0 elsewhere): the mean of ``band_paths`` path samples each
-        (``sample``'s, with ``kwargs``), traced on those lanes alone, gathered into a wavefront of their own
-        with an independent sampler seeded from ``seed`` and ``salt`` (a
-        silhouette's band holds a small part of the lanes; paths traced over
-        all of them, masked, cost as much as the render itself)."""
+        """The primal radiance along each of ``rays`` on the ``band`` lanes (0
+        elsewhere): the mean of ``band_paths`` path samples each (``sample``'s,
+        with ``kwargs``), traced on those lanes alone, gathered into a
+        wavefront of their own with an independent sampler seeded from ``seed``
+        and ``salt`` (a silhouette's band holds a small part of the lanes;
+        paths traced over all of them, masked, cost as much as the render
+        itself)."""
         width = dr.width(band)
         out = [dr.zeros(mi.Spectrum, width) for _ in rays]
         # (evaluated together: each gather would otherwise launch what they
@@ -930,25 +931,24 @@ class LGPRBIntegrator(RBIntegrator):
         return (L if primal else δL, valid_ray, [], (L, rec.handed_over(record), *first))
 
     def _shadow_edge(self, scene, si, ds, shadowed, moving, distance):
-        """The shadow edges' boundary term at a vertex, for its emitter
-        samples that an lgsurface occludes: (w, S), or None where no edge
-        moves. The occluders are the lgsurfaces in ``moving`` (scene
-        indices) and, where the shadow ray's ends move (a moving shading
-        point or light sample), every lgsurface: a static occluder's edge
-        moves against a moving shading point too. Along the shadow ray, the
-        occluder's S (its silhouette's distance proxy, :meth:`LGSurface.silhouette`, attached to its
-        parameters) and the band's weight w (:func:`.lgsurface.edge_weight`:
-        what the sample would bring unoccluded varies smoothly across the
-        band; 0 where the ray is deep in the solid, or something else
-        occludes it behind the occluder's exit). The band is
+        """The shadow edges' boundary term at a vertex, for its emitter samples
+        that an lgsurface occludes: (w, S), or None where no edge moves. The
+        occluders are the lgsurfaces in ``moving`` (scene indices) and, where
+        the shadow ray's ends move (a moving shading point or light sample),
+        every lgsurface: a static occluder's edge moves against a moving
+        shading point too. Along the shadow ray, the occluder's S (its
+        silhouette's distance proxy, :meth:`LGSurface.silhouette`, attached to
+        its parameters) and the band's weight w
+        (:func:`.lgsurface.edge_weight`: what the sample would bring unoccluded
+        varies smoothly across the band; 0 where the ray is deep in the solid,
+        or something else occludes it behind the occluder's exit). The band is
         :attr:`SHADOW_BAND` times ``band_width`` pixels at the shading point,
         ``distance`` along the path from the camera, carried along the shadow
         rays to the occluder (which narrow towards a light sample at finite
         distance): the shadow's edge is then about as wide on the image as
-        twice a silhouette's band. The sample's
-        visibility V = [S > 0] moves by delta(S) dS, relaxed to w dS; S
-        follows the occluder's parameters and the motion of the shading
-        point and the light sample."""
+        twice a silhouette's band. The sample's visibility V = [S > 0] moves by
+        delta(S) dS, relaxed to w dS; S follows the occluder's parameters and
+        the motion of the shading point and the light sample."""
         from .lgsurface import edge_weight
         lgs = common.lg_shapes(scene)
         moving_ray = si.spawn_ray_to(ds.p)          # (attached where its ends move)

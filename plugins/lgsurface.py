@@ -551,6 +551,27 @@ class LGSurface(mi.Mesh):
         si.initialize_sh_frame()
         si.wi = si.to_local(-dr.normalize(ray.d))
 
+    def hit_shift(self, p, d, active=True):
+        """How far a hit of this surface at the world point ``p`` (detached)
+        moves along the ray direction ``d`` as the parameters with gradients
+        move, by the implicit-function theorem: a Float whose value is 0 and
+        whose derivative is -dF / (dF/dt) (:meth:`_attach`); 0 with no
+        derivative where the surface has none or the slope is 0."""
+        active = mi.Bool(active)
+        if not self.gradient_keys():
+            return mi.Float(0)
+        f, _, bound = self._ad_forms()
+        m = DrJitMath(mi.Float, bound=bound)
+        W = mi.Matrix4f(self._to_world.matrix)
+        Winv = dr.rcp(W)
+        p, d = dr.detach(mi.Vector3f(p)), dr.detach(mi.Vector3f(d))
+        q = _affine(Winv, p)
+        F = evaluate(f, _point_env(q), m)
+        grad = mi.Vector3f(self.surface.gradient(mi.Point3f(dr.detach(q))))
+        slope = dr.detach(dr.dot(grad, _linear(Winv, d)))
+        ok = active & dr.isfinite(slope) & (slope != 0) & dr.isfinite(dr.detach(F))
+        return dr.select(ok, -(F - dr.detach(F)) / dr.select(ok, slope, 1.0), 0.0)
+
     def silhouette(self, ray: mi.Ray3f, t_hit, width, active=True, leaves=None, moving_ray=None,
                    weight=None):
         """The relaxed silhouette of this surface for rays that hit it at
@@ -621,10 +642,11 @@ class LGSurface(mi.Mesh):
         # a static surface's S moves only with the ray's ends (``moving_ray``)
         ends_move = moving_ray is not None and (dr.grad_enabled(moving_ray.o)
                                                 or dr.grad_enabled(moving_ray.d))
-        if self.gradient_keys() or ends_move:
+        moves = bool(self.gradient_keys())
+        if moves or ends_move:
             f, _, bound = self._ad_forms()
             Wa_inv = dr.rcp(mi.Matrix4f(self._to_world.matrix))
-            if leaves is not None and self.gradient_keys():
+            if leaves is not None and moves:
                 bound = {k: leaves.wide(v) for k, v in bound.items()}
                 Wa_inv = [[leaves.wide(Wa_inv[i][j]) for j in range(4)] for i in range(3)]
             m = DrJitMath(mi.Float, bound=bound)

@@ -19,6 +19,8 @@ import numpy as np
 import pytest
 
 from conftest import VARIANT
+from gradient_oracles import central_difference, diffuse_ball as ball, forward_estimates, \
+    mean_and_se
 
 R = 0.3
 
@@ -28,13 +30,6 @@ def variant():
     mi.set_variant(VARIANT)
     lgshape.register_plugins()
     yield
-
-
-def ball(r, at, rho):
-    return {"type": "lgsurface", "expr": "x^2 + y^2 + z^2 - r^2", "r": r,
-            "bbox_min": [-0.6] * 3, "bbox_max": [0.6] * 3,
-            "to_world": mi.ScalarTransform4f().translate(list(at)),
-            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho}}}
 
 
 def scene(kind, integrator, r=R, spp=32, **props):
@@ -70,29 +65,12 @@ def scene(kind, integrator, r=R, spp=32, **props):
     return mi.load_dict(d)
 
 
-def mean_of(img):
-    return float(np.mean(np.array(img, np.float64)))
-
-
 def gradient(s, seeds):
-    params = mi.traverse(s)
-    out = []
-    for k in range(seeds):
-        dr.enable_grad(params["ball.r"])
-        params.update()
-        img = mi.render(s, params, seed=2 * k + 5, seed_grad=2 * k + 6)
-        dr.forward(params["ball.r"])
-        out.append(mean_of(dr.grad(img)))
-    return float(np.mean(out)), float(np.std(out, ddof=1) / np.sqrt(seeds))
+    return mean_and_se(forward_estimates(s, "ball.r", seeds))
 
 
 def difference(kind, seeds=4, h=0.01):
-    out = []
-    for k in range(seeds):
-        a = mean_of(mi.render(scene(kind, "lg_path", R + h, spp=256), seed=100 + k))
-        b = mean_of(mi.render(scene(kind, "lg_path", R - h, spp=256), seed=100 + k))
-        out.append((a - b) / (2 * h))
-    return float(np.mean(out)), float(np.std(out, ddof=1) / np.sqrt(seeds))
+    return central_difference(lambda r: scene(kind, "lg_path", r, spp=256), R, h, seeds)
 
 
 @pytest.mark.parametrize("kind", ["mirror", "glass", "diffuse"])

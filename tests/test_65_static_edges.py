@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from conftest import VARIANT
+from gradient_oracles import central_difference, diffuse_ball, forward_estimates
 
 R = 0.5
 
@@ -34,10 +35,7 @@ def variant():
 
 
 def ball(r, at, rho):
-    return {"type": "lgsurface", "expr": "x^2 + y^2 + z^2 - r^2", "r": r,
-            "bbox_min": [-0.7] * 3, "bbox_max": [0.7] * 3,
-            "to_world": mi.ScalarTransform4f().translate(list(at)),
-            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rho}}}
+    return diffuse_ball(r, at, rho, half=0.7)
 
 
 def scene(integrator, r=R, spp=32, **props):
@@ -58,29 +56,12 @@ def scene(integrator, r=R, spp=32, **props):
                  "intensity": {"type": "rgb", "value": 8.0}}})
 
 
-def mean_of(img):
-    return float(np.mean(np.array(img, np.float64)))
-
-
 def gradients(s, seeds):
-    params = mi.traverse(s)
-    out = []
-    for k in range(seeds):
-        dr.enable_grad(params["obj.r"])
-        params.update()
-        img = mi.render(s, params, seed=2 * k + 5, seed_grad=2 * k + 6)
-        dr.forward(params["obj.r"])
-        out.append(mean_of(dr.grad(img)))
-    return np.array(out)
+    return forward_estimates(s, "obj.r", seeds)
 
 
 def difference(seeds=4, h=0.01):
-    out = []
-    for k in range(seeds):
-        a = mean_of(mi.render(scene("lg_path", R + h, spp=256), seed=100 + k))
-        b = mean_of(mi.render(scene("lg_path", R - h, spp=256), seed=100 + k))
-        out.append((a - b) / (2 * h))
-    return float(np.mean(out)), float(np.std(out, ddof=1) / np.sqrt(seeds))
+    return central_difference(lambda r: scene("lg_path", r, spp=256), R, h, seeds)
 
 
 def test01_static_occluders_shadow_on_a_moving_surface():
