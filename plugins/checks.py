@@ -191,17 +191,21 @@ def differentiates_lgsurfaces(integrator) -> bool:
 def check_gradients(scene, integrator=None):
     """Raise :class:`NotDifferentiableError` where a gradient is enabled on
     an lgsurface's parameter and ``integrator`` (default: the scene's) does
-    not differentiate lgsurfaces."""
+    not differentiate lgsurfaces, or not that one (its
+    ``refuse_uncovered_lgsurfaces(scene)``, where it has one, raises)."""
     integrator = scene.integrator() if integrator is None else integrator
     if differentiates_lgsurfaces(integrator):
+        refuse = getattr(integrator, "refuse_uncovered_lgsurfaces", None)
+        if refuse is not None:
+            refuse(scene)
         return
     keys = [k for shape in _lg_shapes(scene) for k in shape.gradient_keys()]
     if not keys:
         return
     names = ", ".join(f"'{k}'" for k in keys)
-    media = ("; 'lg_prb' leaves the scene's media out: no lgshape integrator differentiates "
-             "shapes in a scene with media yet"
-             if integrator_name(integrator) in ("lg_volpath", "lg_prbvolpath") else "")
+    media = ("; 'lg_prb' leaves the scene's media out; 'lg_prbvolpath' differentiates the "
+             "shapes of lgsurfaces that bound homogeneous media with a 'null' BSDF"
+             if integrator_name(integrator) == "lg_volpath" else "")
     raise NotDifferentiableError(
         f"gradients are enabled on {names}, but the integrator "
         f"'{integrator_name(integrator)}' does not differentiate lgsurface parameters "

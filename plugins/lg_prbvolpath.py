@@ -14,12 +14,16 @@ from .lg_volpath import _channel_value, _grad_enabled
 
 
 def _node_kind(params, key):
-    """The kind of scene object that holds ``params[key]``: 'shape',
-    'sensor', or None (media, BSDFs, emitters, textures, volumes)."""
+    """The kind of scene object that holds ``params[key]``: 'shape' (a
+    native one), 'sensor', or None (lgsurfaces, media, BSDFs, emitters,
+    textures, volumes)."""
     try:
         node = params.properties[key][2]
     except Exception:
         return None
+    from .lgsurface import LGSurface
+    if isinstance(node, LGSurface):
+        return None                 # (:meth:`LGPRBVolpathIntegrator._why_not` decides)
     if isinstance(node, mi.Shape):
         return "shape"
     if isinstance(node, mi.Sensor):
@@ -29,12 +33,51 @@ def _node_kind(params, key):
 
 def uncovered_parameters(params):
     """The gradient-enabled keys of ``params`` that lg_prbvolpath does not
-    differentiate: those of native shapes and sensors (lgsurface parameters
-    are refused by :func:`.checks.check_gradients`)."""
+    differentiate: those of native shapes and sensors (lgsurfaces are
+    checked one by one: :meth:`LGPRBVolpathIntegrator._why_not`)."""
     if params is None:
         return []
     return [k for k in params.keys() if _grad_enabled(params[k])
             and _node_kind(params, k) is not None]
+
+
+def _moving(scene):
+    """The scene indices of the lgsurfaces whose parameters have gradients
+    (asked with gradients resumed: the replay runs with them suspended)."""
+    with dr.resume_grad():
+        return [k for k, shape in enumerate(common.lg_shapes(scene)) if shape.gradient_keys()]
+
+
+def _lg_index(scene, moving, shape):
+    """k + 1 where ``shape`` is moving lgsurface k, else 0."""
+    lgs = common.lg_shapes(scene)
+    out = mi.UInt32(0)
+    for k in moving:
+        out = dr.select(shape == lgs[k]._shape_ptr(), k + 1, out)
+    return out
+
+
+def _shift(scene, moving, index, p, d, active):
+    """How far a hit at ``p`` on moving lgsurface ``index`` - 1 (0: none)
+    moves along ``d``: zero-valued, with the derivative of
+    :meth:`.lgsurface.LGSurface.hit_shift`."""
+    lgs = common.lg_shapes(scene)
+    out = mi.Float(0)
+    for k in moving:
+        mine = active & (index == k + 1)
+        out = dr.select(mine, lgs[k].hit_shift(p, d, mine), out)
+    return out
+
+
+def _sigma_t(medium, ray, active):
+    """The extinction of ``medium`` at the ray's origin (detached): a
+    homogeneous medium's, the same everywhere."""
+    mei = dr.zeros(mi.MediumInteraction3f)
+    mei.p = mi.Point3f(dr.detach(ray.o))
+    mei.wavelengths = ray.wavelengths
+    mei.medium = medium
+    with dr.suspend_grad():
+        return dr.detach(medium.get_scattering_coefficients(mei, active)[2])
 
 
 class LGPRBVolpathIntegrator(RBIntegrator):
@@ -52,6 +95,13 @@ class LGPRBVolpathIntegrator(RBIntegrator):
      * - rr_depth
        - |int|
        - Path depth from which Russian roulette may end paths. (Default: 5)
+     * - medium_band
+       - |float|
+       - Width of the band at each end of a medium segment bounded by a
+         moving lgsurface over which the scattering at that end is
+         estimated, in mean free paths, at most that fraction of the
+         smallest moving lgsurface's bounding radius (0: that term off).
+         (Default: 0.1)
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: |false|)
@@ -72,8 +122,12 @@ class LGPRBVolpathIntegrator(RBIntegrator):
 
     Differentiates: media parameters (``sigma_t``, ``albedo``, ``scale`` of
     homogeneous media; grid values of heterogeneous ones, as prbvolpath),
-    BSDF parameters, phase-function and emitter parameters. It does *not*
-    differentiate shape parameters (lgsurfaces' or native shapes') nor the
+    BSDF parameters, phase-function and emitter parameters, and the shape
+    (parameters, ``to_world``) of an lgsurface with a ``null`` BSDF whose
+    media are homogeneous (:meth:`_moving_ends`: the image is continuous
+    across such a surface's silhouettes, so it has interior terms only).
+    It does *not* differentiate other shapes (lgsurfaces with another BSDF,
+    emitting or next to a heterogeneous medium; native shapes) nor the
     sensor: a gradient enabled on one raises
     :class:`~.checks.NotDifferentiableError` naming it. Forward mode
     (``dr.forward``) is refused likewise. The camera rays start outside
@@ -82,23 +136,63 @@ class LGPRBVolpathIntegrator(RBIntegrator):
 
     PLUGIN = "lg_prbvolpath"            # the plugin name (:func:`.checks.integrator_name`)
     SEES_LGSURFACES = True              # traces lgsurfaces (:func:`.checks.sees_lgsurfaces`)
+    DIFFERENTIATES_LGSURFACES = True    # (those :meth:`_why_not` allows; the rest raise)
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         common.read_depths(self, props)
+        self.medium_band = props.get("medium_band", 0.1)
+        if not self.medium_band >= 0:
+            raise ValueError(f"lg_prbvolpath: 'medium_band' must be >= 0, got {self.medium_band}")
 
     # ---- Checks -------------------------------------------------------------
 
-    def _refuse_uncovered(self, params):
+    def _refuse_uncovered(self, scene, params):
         from .checks import NotDifferentiableError
         keys = uncovered_parameters(params)
         if keys:
             names = ", ".join(f"'{k}'" for k in keys)
             raise NotDifferentiableError(
-                f"lg_prbvolpath differentiates media, BSDF, phase and emitter parameters, but "
-                f"a gradient was asked for the shape or sensor parameters {names}; no lgshape "
-                f"integrator differentiates shapes in a scene with media yet: 'lg_prb' gives "
+                f"lg_prbvolpath differentiates media, BSDF, phase and emitter parameters and the "
+                f"shapes of lgsurfaces that bound homogeneous media with a 'null' BSDF, but a "
+                f"gradient was asked for the shape or sensor parameters {names}: 'lg_prb' gives "
                 f"shape gradients with the media left out, or call dr.disable_grad() on them")
+        self.refuse_uncovered_lgsurfaces(scene)
+
+    def refuse_uncovered_lgsurfaces(self, scene):
+        """Raise :class:`~.checks.NotDifferentiableError` where an lgsurface
+        whose shape this integrator cannot differentiate (:meth:`_why_not`)
+        has gradients enabled (called by :func:`.checks.check_gradients`
+        before each render)."""
+        from .checks import NotDifferentiableError
+        for shape in common.lg_shapes(scene):
+            with dr.resume_grad():          # (a primal render runs with them suspended)
+                keys = shape.gradient_keys()
+            why = self._why_not(shape) if keys else None
+            if why:
+                names = ", ".join(f"'{k}'" for k in keys)
+                raise NotDifferentiableError(
+                    f"lg_prbvolpath differentiates an lgsurface's shape only where it bounds "
+                    f"homogeneous media with a 'null' BSDF (the image is then continuous across "
+                    f"its silhouettes), but gradients are enabled on {names} and {why}: 'lg_prb' "
+                    f"differentiates it with the media left out, or call dr.disable_grad() on "
+                    f"them")
+
+    @staticmethod
+    def _why_not(shape):
+        """Why lg_prbvolpath cannot differentiate this moving lgsurface's
+        shape (None where it can)."""
+        bsdf = shape.bsdf()
+        lobes = int(mi.BSDFFlags.All) & ~int(mi.BSDFFlags.Null)
+        if bsdf is None or int(bsdf.flags()) & lobes:
+            return "its BSDF is not 'null' (its silhouettes and shadow edges are not covered here)"
+        if shape.emitter() is not None:
+            return "it is an area emitter"
+        for side, medium in (("interior", shape.interior_medium()),
+                             ("exterior", shape.exterior_medium())):
+            if medium is not None and not medium.is_homogeneous():
+                return f"its {side} medium is heterogeneous"
+        return None
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         common.check(self, scene, sensor)
@@ -108,7 +202,7 @@ class LGPRBVolpathIntegrator(RBIntegrator):
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         from .checks import NotDifferentiableError
         common.check(self, scene, sensor)
-        self._refuse_uncovered(params)
+        self._refuse_uncovered(scene, params)
         on = [k for k in (params.keys() if params is not None else []) if _grad_enabled(params[k])]
         raise NotDifferentiableError(
             f"lg_prbvolpath computes gradients in reverse mode only (dr.backward), but a "
@@ -118,7 +212,7 @@ class LGPRBVolpathIntegrator(RBIntegrator):
 
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
-        self._refuse_uncovered(params)
+        self._refuse_uncovered(scene, params)
         with common.traced_searches(scene):
             super().render_backward(scene, params, grad_in, sensor, seed, spp)
 
@@ -149,6 +243,8 @@ class LGPRBVolpathIntegrator(RBIntegrator):
         specular_chain = mi.Bool(True)
         valid_ray = mi.Bool(False)
         bsdf_ctx = mi.BSDFContext()
+        moving = [] if primal else _moving(scene)
+        entry = mi.UInt32(0)        # k + 1: the ray starts where it crossed moving lgsurface k
         if dr.hint(self.hide_emitters, mode="scalar"):
             hit = ray_intersect_preliminary(scene, ray, active)
             ray, hit = skip_area_emitters(scene, ray, hit, active)
@@ -179,6 +275,9 @@ class LGPRBVolpathIntegrator(RBIntegrator):
                 weight = mi.Spectrum(1)
                 weight[in_medium] = dr.select(tr_pdf > 0, tr / tr_pdf, 0.0)
                 escaped = in_medium & ~mei.is_valid()
+                if dr.hint(bool(moving), mode="scalar"):
+                    weight *= self._moving_ends(scene, moving, ray, si, mei, entry, in_medium,
+                                                escaped, medium, δL, L)
                 in_medium &= mei.is_valid()
 
                 # null collision (heterogeneous media) or real scattering
@@ -197,6 +296,7 @@ class LGPRBVolpathIntegrator(RBIntegrator):
                     dr.backward_from(δL * weight * after)
                 mei = dr.detach(mei)
             ray.o[null] = mei.p
+            entry[null] = 0
             si.t[null] = si.t - mei.t
             depth[scatter] += 1
             active &= depth < self.max_depth
@@ -265,6 +365,7 @@ class LGPRBVolpathIntegrator(RBIntegrator):
                         dr.backward_from(δL * p_eval * after)
             throughput[scatter] *= p_weight
             ray[scatter] = mei.spawn_ray(wo)
+            entry[scatter] = 0
             needs_intersection |= scatter
             last_event[scatter] = mei
             last_pdf[scatter] = p_pdf
@@ -284,6 +385,7 @@ class LGPRBVolpathIntegrator(RBIntegrator):
             throughput[on_surface] *= b_weight
             η[on_surface] *= bs.eta
             ray[on_surface] = si.spawn_ray(si.to_world(bs.wo))
+            entry[on_surface] = _lg_index(scene, moving, si.shape) if moving else 0
             needs_intersection |= on_surface
             real = on_surface & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
             depth[real] += 1
@@ -297,6 +399,48 @@ class LGPRBVolpathIntegrator(RBIntegrator):
             active &= in_medium | on_surface
 
         return (L if primal else δL), valid_ray, [], L
+
+    def _moving_ends(self, scene, moving, ray, si, mei, entry, in_medium, escaped, medium,
+                     δL, L):
+        """The derivatives of a free flight in a homogeneous medium whose
+        segment starts or ends on a moving lgsurface (``moving``: their scene
+        indices), where it crosses (a 'null' boundary): the factor
+        exp(sigma_t (da - db)) that the flight's weight takes (its value 1;
+        da, db: how far the segment's start, where the ray crossed moving
+        lgsurface ``entry`` - 1, and its end, ``si`` on the lanes that pass
+        the segment, move along the ray), and, backpropagated here, the
+        scattering at the ends: a segment [a, b] moves the image by
+        T(b) sigma_s L_i(b) db - sigma_s L_i(a) da besides, whose densities
+        are estimated from this flight's own collisions near each end
+        (within ``medium_band`` mean free paths, at most that part of the
+        smallest moving surface's bounding radius), weighted by
+        :func:`.lgsurface.edge_weight` (first moment 0) times what the path
+        brings from the collision on (``L``, what is left to replay)."""
+        from .lgsurface import edge_weight
+        lgs = common.lg_shapes(scene)
+        sigma = _sigma_t(medium, ray, in_medium)
+        d_a = _shift(scene, moving, entry, ray.o, ray.d, in_medium)
+        d_b = _shift(scene, moving, _lg_index(scene, moving, si.shape), ray(si.t), ray.d, escaped)
+        factor = dr.exp(sigma * (d_a - dr.select(escaped, d_b, 0.0)))
+        if dr.hint(self.medium_band > 0, mode="scalar"):
+            radius = min(float(lgs[k]._sphere[1]) for k in moving)
+            h = self.medium_band * dr.minimum(dr.rcp(dr.max(dr.detach(sigma))), radius)
+            event = in_medium & mei.is_valid()
+            t = dr.detach(mei.t)
+            w_a = dr.select(event & (entry != 0), edge_weight(-t, h), 0.0)
+            probe = mi.Ray3f(dr.detach(ray))
+            probe.o = mi.Point3f(ray(t))
+            probe.maxt = h
+            hit = ray_intersect_preliminary(scene, probe, event)
+            near = event & hit.is_valid()
+            w_b = dr.select(near, edge_weight(-hit.t, h), 0.0)
+            d_end = _shift(scene, moving, hit.lg, probe(hit.t), probe.d, near & (w_b != 0))
+            # (d_a again: a backward pass frees the graph of what it traverses,
+            # and the flight's weight still holds d_a)
+            d_a = _shift(scene, moving, entry, ray.o, ray.d, event & (w_a != 0))
+            term = w_b * d_end - w_a * d_a
+            dr.backward_from(δL * dr.detach(dr.select(event, L, 0.0)) * term)
+        return dr.select(in_medium, factor, 1.0)
 
     @dr.syntax
     def _direct(self, scene, sampler, ref, si, from_medium, from_surface, medium, channel,
@@ -323,6 +467,8 @@ class LGPRBVolpathIntegrator(RBIntegrator):
         tr = mi.Spectrum(1)
         s = dr.zeros(mi.SurfaceInteraction3f)
         needs_intersection = mi.Bool(True)
+        moving = _moving(scene) if replay else []
+        entry = mi.UInt32(0)
         while dr.hint(active, max_iterations=-1, label="lg_prbvolpath: shadow path"):
             remaining = max_dist - total
             ray.maxt = remaining
@@ -340,6 +486,12 @@ class LGPRBVolpathIntegrator(RBIntegrator):
                 mult = mi.Spectrum(1)
                 mei.t[homogeneous] = dr.minimum(remaining, s.t)
                 mult[homogeneous] = medium.transmittance_eval_pdf(mei, s, homogeneous)[0]
+                if dr.hint(bool(moving), mode="scalar"):
+                    ends = homogeneous & (s.t < remaining)
+                    shift = _shift(scene, moving, entry, ray.o, ray.d, homogeneous) - \
+                        _shift(scene, moving, _lg_index(scene, moving, s.shape), ray(s.t), ray.d,
+                               ends)
+                    mult[homogeneous] *= dr.exp(_sigma_t(medium, ray, homogeneous) * shift)
                 mei.t[homogeneous] = dr.inf
                 escaped = in_medium & ~mei.is_valid()
                 in_medium &= mei.is_valid()
@@ -356,6 +508,8 @@ class LGPRBVolpathIntegrator(RBIntegrator):
             mult[on_surface] *= bsdf.eval_null_transmission(s, on_surface)
             tr *= mult
             ray[on_surface] = s.spawn_ray(mi.Vector3f(ray.d))
+            entry[in_medium] = 0
+            entry[on_surface] = _lg_index(scene, moving, s.shape) if moving else 0
             ray.maxt = remaining
             needs_intersection |= on_surface
             active &= (in_medium | on_surface) & dr.any(tr != 0)

@@ -31,8 +31,9 @@ def _refuse_gradients(params):
     raise NotDifferentiableError(
         f"lg_volpath does not compute gradients, but a gradient render was asked for the scene "
         f"parameters {names}: render media, BSDF, phase and emitter gradients with "
-        f"'lg_prbvolpath' (the same estimator, differentiated), lgsurface parameters with "
-        f"'lg_prb' (which ignores media), or call dr.disable_grad() on them")
+        f"'lg_prbvolpath' (the same estimator, differentiated; also the shapes of "
+        f"lgsurfaces that bound homogeneous media with a 'null' BSDF), other lgsurface "
+        f"parameters with 'lg_prb' (which ignores media), or call dr.disable_grad() on them")
 
 
 def _grad_enabled(value):

@@ -6,8 +6,8 @@ differences of lg_volpath renders (d mean / d sigma_t), and Mitsuba's
 ``x^2 + y^2 + z^2 - r^2`` replaced by a native ``sphere`` of radius r).
 Each comparison is between means over independent seeds, within K standard
 errors of their difference (the standard errors measured from the seeds'
-spread). Parameters lg_prbvolpath does not differentiate (shape, sensor;
-forward mode) raise NotDifferentiableError naming them.
+spread). Parameters lg_prbvolpath does not differentiate (native shapes,
+sensor; forward mode) raise NotDifferentiableError naming them.
 """
 from __future__ import annotations
 
@@ -160,11 +160,12 @@ def test_floor_reflectance_against_prbvolpath():
     assert d <= t
 
 
-@pytest.mark.parametrize("part, native", [("ball.r", False), ("floor.to_world", True)])
-def test_shape_parameters_raise(part, native):
-    """Shape parameters (an lgsurface's r; a native shape's to_world) are not
-    differentiated by lg_prbvolpath: a gradient render raises
-    NotDifferentiableError naming the parameter and the integrator to use."""
+@pytest.mark.parametrize("part", ["floor.to_world"])
+def test_shape_parameters_raise(part):
+    """A native shape's parameters (to_world) are not differentiated by
+    lg_prbvolpath: a gradient render raises NotDifferentiableError naming
+    the parameter and the integrator to use (lgsurfaces:
+    tests/test_66_media_shapes.py)."""
     from lgshape.plugins.checks import NotDifferentiableError
     scene = fog_scene("lg_prbvolpath", True, floor=True, spp=1, res=4)
     params = mi.traverse(scene)
