@@ -9,6 +9,8 @@ Oracles:
   mean is its mean over the film (box filter), integrated on a
   4000 x 4000 midpoint grid in float64, and d mean / d r its central
   difference (step 1e-3; the grid's and the step's errors are below 1e-4);
+  a uniform scale s in ``to_world`` makes it the ball of radius s r, whose
+  derivative at s = 1 is r times the radius's;
 - a scattering fog ball (albedo 0.8) lit by a directional light: central
   finite differences of lg_volpath's image mean (the estimator
   lg_prbvolpath differentiates), h = 0.01, the same seed on both sides.
@@ -103,7 +105,28 @@ def test01_absorbing_fog_ball_against_its_closed_form():
     assert abs(g - exact) <= K * se + 1e-4, (g, se, exact)
 
 
-def test02_scattering_fog_ball_against_finite_differences():
+def test02_a_scale_in_to_world_is_the_radius_times_r():
+    # The ball x^2 + y^2 + z^2 = r^2 scaled by s about its centre is the
+    # ball of radius s r: d mean / d s at s = 1 is r d mean / d r (the
+    # closed form of test01).
+    h, fov = 1e-3, 10.0
+    exact = R * (absorbing_mean(R + h, fov) - absorbing_mean(R - h, fov)) / (2 * h)
+    s = fog_ball("lg_prbvolpath", spp=64, fov=fov)
+    params = mi.traverse(s)
+    out = []
+    for k in range(16):
+        x = mi.Float(1.0)
+        dr.enable_grad(x)
+        params["ball.to_world"] = mi.Transform4f().scale(mi.Vector3f(x))
+        params.update()
+        img = mi.render(s, params, seed=2 * k + 5, seed_grad=2 * k + 6)
+        dr.backward(dr.mean(img, axis=None))
+        out.append(float(dr.grad(x)[0]))
+    g, se = mean_and_se(out)
+    assert abs(g - exact) <= K * se + 1e-4, (g, se, exact)
+
+
+def test03_scattering_fog_ball_against_finite_differences():
     fd, fd_se = central_difference(
         lambda r: fog_ball("lg_volpath", r, albedo=0.8, sun=True, spp=1024), R, 0.01, 8)
     on = reverse_estimates(fog_ball("lg_prbvolpath", albedo=0.8, sun=True), "ball.r", 16)
@@ -117,7 +140,7 @@ def test02_scattering_fog_ball_against_finite_differences():
 
 
 @pytest.mark.parametrize("case", ["diffuse", "heterogeneous"])
-def test03_uncovered_shapes_raise(case):
+def test04_uncovered_shapes_raise(case):
     from lgshape.plugins.checks import NotDifferentiableError
     if case == "diffuse":
         s = fog_ball("lg_prbvolpath", spp=4, res=4, bsdf={"type": "diffuse"})
