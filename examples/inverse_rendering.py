@@ -1,7 +1,7 @@
 """Inverse rendering with lgshape: recover shape, light, medium and colour
 parameters from a target image.
 
-Four problems (the first argument):
+Five problems (the first argument):
 
 - ``torus``: a library torus's two radii and its albedo (target R = 0.75,
   r = 0.28, albedo (0.7, 0.35, 0.2); start R = 0.6, r = 0.2, grey);
@@ -13,13 +13,16 @@ Four problems (the first argument):
   start 0.08; the gradient is the light's interior and edge terms);
 - ``fog``: the density (``sigma_t``) of a homogeneous fog inside a torus
   with a ``null`` surface, from its image against a sky (target 2.0,
-  start 0.7), rendered with ``lg_prbvolpath``.
+  start 0.7), rendered with ``lg_prbvolpath``;
+- ``fogshape``: the tube radius of that fog torus (density 2.0; target
+  r = 0.3, start 0.22), from the same view, under ``lg_prbvolpath`` (the
+  shape of a ``null`` surface around a homogeneous medium).
 
-The target is rendered with lg_path (lg_volpath for the fog) at
+The target is rendered with lg_path (lg_volpath for the fogs) at
 ``--target-spp`` samples per pixel (default: 32 times ``--spp``, 512 at the
 default 16); the optimisation runs mi.ad.Adam on the L2 image loss,
 rendering with lg_prb (interior, silhouette, shadow-edge and light-edge
-gradients; lg_prbvolpath for the fog), the learning rate decaying after the
+gradients; lg_prbvolpath for the fogs), the learning rate decaying after the
 first 60 iterations. It writes, into the output folder, the target, the first and
 the last image (EXR, the last at the target's spp), the loss curve
 (loss.png) and the parameters per iteration (history.json), and prints each
@@ -32,6 +35,7 @@ naming the parameters outside it, exit status 1 (2: bad arguments).
     python examples/inverse_rendering.py blobs [--iterations 200] [--out inverse-blobs]
     python examples/inverse_rendering.py light [--iterations 200] [--out inverse-light]
     python examples/inverse_rendering.py fog [--iterations 200] [--out inverse-fog]
+    python examples/inverse_rendering.py fogshape [--iterations 200] [--out inverse-fogshape]
 """
 from __future__ import annotations
 
@@ -80,8 +84,8 @@ def lamp(r):
             "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 12.0}}}
 
 
-def fog_torus(sigma_t):
-    return {"type": "lgsurface", "surface": "torus", "R": 0.7, "r": 0.3,
+def fog_torus(sigma_t, r=0.3):
+    return {"type": "lgsurface", "surface": "torus", "R": 0.7, "r": r,
             "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], 60),
             "bsdf": {"type": "null"},
             "interior": {"type": "homogeneous", "sigma_t": sigma_t,
@@ -175,6 +179,10 @@ PROBLEMS = {
             "start": {"obj.interior_medium.sigma_t.value.value": 0.7},
             "scale": None, "primal": "lg_volpath", "gradient": "lg_prbvolpath", "lr": 0.05,
             "clip": {"obj.interior_medium.sigma_t.value.value": (0.05, 20.0)}, "scene": fog_sky},
+    "fogshape": {"shape": lambda r: fog_torus(2.0, r), "true": {"obj.r": 0.3},
+                 "start": {"obj.r": 0.22}, "scale": None, "primal": "lg_volpath",
+                 "gradient": "lg_prbvolpath", "lr": 0.01, "clip": {"obj.r": (0.05, 0.6)},
+                 "scene": fog_sky},
 }
 
 
@@ -228,7 +236,8 @@ def parser() -> argparse.ArgumentParser:
                "1 did not converge, 2 bad arguments.")
     ap.add_argument("problem", choices=sorted(PROBLEMS),
                     help="torus: a library torus's radii and albedo; blobs: three blobs' "
-                         "centres; light: an emitting sphere's radius; fog: a fog's density")
+                         "centres; light: an emitting sphere's radius; fog: a fog's density; "
+                         "fogshape: the fog torus's tube radius")
     ap.add_argument("--iterations", type=positive(int), default=200, help="Adam iterations")
     ap.add_argument("--res", type=positive(int), default=48, help="image width and height")
     ap.add_argument("--spp", type=positive(int), default=16,

@@ -21,8 +21,7 @@ def _node_kind(params, key):
         node = params.properties[key][2]
     except Exception:
         return None
-    from .lgsurface import LGSurface
-    if isinstance(node, LGSurface):
+    if getattr(node, "IS_LGSURFACE", False):
         return None                 # (:meth:`LGPRBVolpathIntegrator._why_not` decides)
     if isinstance(node, mi.Shape):
         return "shape"

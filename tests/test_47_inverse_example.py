@@ -9,8 +9,8 @@ exit status (converged: 0, did not converge: 1). (The full run, 200
 iterations to within 1% of every parameter, is measured in
 docs/BENCHMARKS.md.) The light and fog problems likewise: after a few
 iterations at a small size, the loss has fallen and the parameter (an
-emitting sphere's radius under lg_prb, a fog's density under
-lg_prbvolpath) is closer to the truth than at the start.
+emitting sphere's radius under lg_prb, a fog's density and a fog torus's
+tube radius under lg_prbvolpath) is closer to the truth than at the start.
 """
 from __future__ import annotations
 
@@ -45,7 +45,8 @@ def test_torus_problem_optimises(tmp_path):
 
 
 @pytest.mark.parametrize("problem, key", [("light", "lamp.r"),
-                                          ("fog", "obj.interior_medium.sigma_t.value.value")])
+                                          ("fog", "obj.interior_medium.sigma_t.value.value"),
+                                          ("fogshape", "obj.r")])
 def test_light_and_fog_problems_optimise(problem, key, tmp_path):
     out = subprocess.run([sys.executable, str(EXAMPLE), problem, "--iterations", "12",
                           "--res", "16", "--spp", "8", "--out", str(tmp_path)],
