@@ -1,4 +1,5 @@
 # The two quick-start commands; each sets up .venv on first use.
+SHELL  := /bin/bash
 PYTHON ?= python3
 VENV   ?= .venv
 SPP    ?=
@@ -15,12 +16,19 @@ setup: $(VENV)/.installed
 render: $(VENV)/.installed
 	$(VENV)/bin/lgshape render scenes/cornell.xml -o cornell.exr $(if $(SPP),--spp $(SPP))
 
-# pytest exits 5 when it collected no tests: a failure for this suite.
+# pytest exits 5 when it collected no tests: a failure for this suite. Its
+# stderr is also kept in .pytest_cache/lgshape-stderr: where pytest dies of a
+# signal, the end of the output repeats what CI's tail would lose (the first
+# lines naming Dr.Jit or the fatal error, and the dying thread's frames
+# outside site-packages, as Python's faulthandler printed them).
 test: $(VENV)/.installed
-	@$(VENV)/bin/python -m pytest -q; rc=$$?; \
+	@mkdir -p .pytest_cache; err=.pytest_cache/lgshape-stderr; \
+	$(VENV)/bin/python -m pytest -q 2> >(tee $$err >&2); rc=$$?; sleep 1; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; \
 	if [ $$rc -gt 128 ] && [ -f .pytest_cache/lgshape-current-test ]; then \
-	  echo "pytest died of signal $$((rc - 128)) in $$(cat .pytest_cache/lgshape-current-test)"; fi; \
+	  echo "pytest died of signal $$((rc - 128)) in $$(cat .pytest_cache/lgshape-current-test)"; \
+	  grep -m 4 -i -E "fatal|critical|drjit|jit_|error" $$err | cut -c1-400; \
+	  awk '/^(Current thread|Thread 0x)/{n++} n==1' $$err | grep -v site-packages | head -16; fi; \
 	exit $$rc
 
 bench: $(VENV)/.installed
