@@ -303,6 +303,9 @@ class LGPRBIntegrator(RBIntegrator):
     #: so a wider band costs less bias there, and the band on the shading
     #: points is what their variance depends on.
     SHADOW_BAND = 2.0
+    #: The delta vertices from the camera (a mirror, glass) whose turn the
+    #: replay follows as a moving lgsurface's normal moves (:meth:`_chain_ray`)
+    CHAIN = 4
     SEES_LGSURFACES = True              # traces lgsurfaces (:func:`.checks.sees_lgsurfaces`)
     DIFFERENTIATES_LGSURFACES = True    # (:func:`.checks.differentiates_lgsurfaces`)
 
@@ -392,12 +395,14 @@ class LGPRBIntegrator(RBIntegrator):
         - ``boundary`` is on and f changes sign on its box (:func:`_cut_by_box`):
           the edges where the box cuts the surface have no boundary term;
         - its BSDF has a delta reflection or transmission (a mirror, glass)
-          and paths go on after it (``max_depth`` >= 2): the replay moves
-          each vertex with its own surface, the direction to the next one
-          fixed in the world, so the turn of a mirror's reflected direction
-          as its normal moves is not followed (nor are the silhouettes seen
-          in it: :meth:`_bounce_term`). Said whether or not ``boundary`` is
-          on (it is an interior term).
+          and paths go on after it (``max_depth`` >= 2): the replay turns
+          the reflected and refracted directions with the normals along the
+          camera's first delta vertices (:meth:`_chain_ray`), but a delta
+          vertex after a smooth bounce, or past :attr:`CHAIN`, keeps the
+          direction to the next vertex fixed in the world; the silhouettes
+          seen in it have no term (:meth:`_bounce_term`); and its own
+          silhouette's band sees a curved mirror's image change fast. Said
+          whether or not ``boundary`` is on.
 
         With ``boundary`` off, no boundary term at all is computed, as asked,
         and only the last item is said. (The light of an emitting lgsurface follows its
@@ -417,9 +422,13 @@ class LGPRBIntegrator(RBIntegrator):
             turning = mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission
             if bsdf is not None and (int(bsdf.flags()) & int(turning)) and depth >= 2:
                 out.append(f"lg_prb: the moving lgsurface {name} has a delta BSDF (a mirror, "
-                           f"glass): what is seen in it or through it does not follow the turn "
-                           f"of the reflected or refracted direction as its surface moves, nor "
-                           f"get the boundary term of the silhouettes seen there: {left_out}")
+                           f"glass): the reflected and refracted directions turn with its "
+                           f"normal along the first {min(self.CHAIN, depth - 1)} delta "
+                           f"vertices from the camera, but not after a smooth bounce or past "
+                           f"them, and the silhouettes seen in it or through it get no "
+                           f"boundary term: {left_out}; its own silhouette's term is biased "
+                           f"where what it shows changes fast across the band (a curved "
+                           f"mirror's rim)")
             if not self.boundary:
                 continue
             needed = depth - 1 if depth != 0xFFFFFFFF else None   # bounces that see light
@@ -797,6 +806,15 @@ class LGPRBIntegrator(RBIntegrator):
             with dr.resume_grad():
                 moving = self._moving(scene)
 
+        # The delta vertices from the camera (mirror, glass: _chain_ray)
+        # that the replay turns with a moving lgsurface's normal: how many
+        # it follows, and the lane's own (their hits, samples and count)
+        chain = 0
+        if dr.hint(not primal, mode="scalar"):
+            with dr.resume_grad():
+                chain = self._chain_length(scene)
+        chain_hits, chain_u1, chain_u2, chain_n = self._chain_start(chain)
+
         travelled = mi.Float(0)                              # Path length to the vertex
         ray_prev = mi.Ray3f(ray)                             # The previous vertex:
         hit_prev = Hit(pi=dr.zeros(mi.PreliminaryIntersection3f), lg=mi.UInt32(0),
@@ -811,13 +829,21 @@ class LGPRBIntegrator(RBIntegrator):
             # The vertex, following the shapes' parameters (and the previous
             # vertex: the direction towards it moves with both)
             with dr.resume_grad(when=not primal):
-                si = compute_interaction(scene, ray, hit, active=active)
+                ray_in, ray_back = ray, ray_prev
+                if dr.hint(chain > 0, mode="scalar"):
+                    ray_in = self._chain_ray(scene, chain, first[0], ray, chain_hits, chain_u1,
+                                             chain_u2, chain_n, depth)
+                    ray_back = self._chain_ray(scene, chain, first[0], ray_prev, chain_hits,
+                                               chain_u1, chain_u2, chain_n, depth - 1)
+                si = compute_interaction(scene, ray_in, hit, active=active)
                 # Does geometry move with the parameters? (Known while
                 # tracing: the same for every vertex of every path.)
                 moves = not primal and (dr.grad_enabled(si.p) or dr.grad_enabled(si.n))
                 if dr.hint(moves, mode="scalar"):
-                    back = active & (depth > 0)
-                    si_prev_d = compute_interaction(scene, ray_prev, hit_prev,
+                    # (a miss has no point: the direction to the environment
+                    # stays, or turns with the camera's delta chain)
+                    back = active & (depth > 0) & si.is_valid()
+                    si_prev_d = compute_interaction(scene, ray_back, hit_prev,
                                                     mi.RayFlags.Minimal, back)
                     wi = si.to_local(dr.normalize(si_prev_d.p - si.p))
                     si.wi = dr.replace_grad(si.wi, dr.select(back, wi, si.wi))
@@ -888,6 +914,18 @@ class LGPRBIntegrator(RBIntegrator):
                     # weight, moving with the edge (all of it, as above)
                     Lr_dir = Lr_dir + dr.detach(β * bsdf_val) * light_edges
             bs, bsdf_weight = bsdf.sample(bsdf_ctx, si, sample_1, sample_2, active_next)
+            # a delta vertex of the camera's chain that the next one follows:
+            # its sample's weight, attached (the Fresnel factor moves with
+            # the normal; no area measure for the next vertex: it is not free)
+            turned = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) & si.is_valid()
+            chain_delta, w_turn = None, None
+            if dr.hint(chain > 0, mode="scalar"):
+                chain_delta = active_next & turned & (depth == chain_n) & (depth < chain)
+                with dr.resume_grad():
+                    w_turn = bsdf.sample(bsdf_ctx, si, sample_1, sample_2, chain_delta)[1]
+                chain_hits, chain_u1, chain_u2, chain_n = self._chain_push(
+                    chain_hits, chain_u1, chain_u2, chain_n, depth, hit, sample_1, sample_2,
+                    active & turned)
 
             # ---------------------- BSDF sampling ----------------------
             L = (L + Le + Lr_dir) if primal else (L - Le - Lr_dir)
@@ -917,7 +955,7 @@ class LGPRBIntegrator(RBIntegrator):
             # -------------- Differential phase: this vertex --------------
             if dr.hint(not primal, mode="scalar"):
                 δL = self._propagate(mode, scene, bsdf, bsdf_ctx, si, ray_next, hit_next, L,
-                                     Le, Lr_dir, δL, active_next, moves)
+                                     Le, Lr_dir, δL, active_next, moves, chain_delta, w_turn)
 
             # ------------------------ The next vertex ------------------------
             travelled += dr.select(si.is_valid(), dr.detach(hit.t), 0.0)
@@ -929,6 +967,70 @@ class LGPRBIntegrator(RBIntegrator):
             active = active_next
 
         return (L if primal else δL, valid_ray, [], (L, rec.handed_over(record), *first))
+
+    # ---- The camera's delta chain: mirrors and glass that move -------------
+
+    def _chain_length(self, scene):
+        """How many delta vertices from the camera the replay turns
+        (:attr:`CHAIN`, at most ``max_depth`` - 1: the vertices that have a
+        next one; called with gradients on): 0 where no moving lgsurface
+        has a delta reflection or transmission, or paths end at their first
+        vertex. (A glass slab's light crosses two faces and, a few per cent
+        of it, reflects inside: its derivative needs about 4.)"""
+        if self.max_depth < 2:
+            return 0
+        turning = int(mi.BSDFFlags.DeltaReflection | mi.BSDFFlags.DeltaTransmission)
+        lgs = common.lg_shapes(scene)
+        for k in self._moving(scene):
+            bsdf = lgs[k].bsdf()
+            if bsdf is not None and int(bsdf.flags()) & turning:
+                return min(self.CHAIN, self.max_depth - 1)
+        return 0
+
+    @staticmethod
+    def _chain_start(chain):
+        """The empty chain (:meth:`_chain_push`): ``chain`` hits, first and
+        second samples, and the lanes' count."""
+        hits = [Hit(pi=dr.zeros(mi.PreliminaryIntersection3f), lg=mi.UInt32(0),
+                    t=mi.Float(dr.inf)) for _ in range(chain)]
+        return hits, [mi.Float(0) for _ in hits], [mi.Point2f(0) for _ in hits], mi.UInt32(0)
+
+    @staticmethod
+    def _chain_push(hits, u1, u2, n, depth, hit, sample_1, sample_2, delta):
+        """The chain after vertex ``depth`` (its ``hit``, its BSDF samples):
+        one longer on the ``delta`` lanes whose vertices so far were all
+        delta ones (``depth == n``), unchanged elsewhere."""
+        grow = delta & (depth == n)
+        at = [grow & (depth == j) for j in range(len(hits))]
+        hits = [dr.select(a, hit, h) for a, h in zip(at, hits)]
+        u1 = [dr.select(a, sample_1, u) for a, u in zip(at, u1)]
+        u2 = [dr.select(a, sample_2, u) for a, u in zip(at, u2)]
+        return hits, u1, u2, dr.select(grow, n + 1, n)
+
+    @staticmethod
+    def _chain_ray(scene, chain, camera_ray, ray, hits, u1, u2, n, k):
+        """``ray`` (detached: the ray into vertex ``k``) with the derivatives
+        of the ray that the camera's delta chain sends there, where vertices
+        0 .. k - 1 all had a delta BSDF sample (``k <= n``, the lane's chain,
+        and ``k <= chain``): the camera ray turned at each by its BSDF's
+        sample (the same samples), each vertex following its surface's
+        parameters and the turned ray before it (the implicit-function
+        theorem along an attached ray; Mitsuba's shapes follow it too). A
+        mirror's or glass's reflected and refracted directions then turn
+        with its normal, and what is seen in it moves with them. Elsewhere
+        ``ray`` as it is (a vertex moving with its own surface alone)."""
+        ctx = mi.BSDFContext()
+        r = mi.Ray3f(camera_ray)
+        for j in range(chain):
+            go = (j < k) & (j < n)
+            si = compute_interaction(scene, r, hits[j], active=go)
+            bs = si.bsdf(r).sample(ctx, si, u1[j], u2[j], go)[0]
+            r = dr.select(go, si.spawn_ray(si.to_world(bs.wo)), r)
+        ok = (k <= n) & (k <= chain)
+        out = mi.Ray3f(ray)
+        out.o = dr.replace_grad(ray.o, dr.select(ok, r.o, ray.o))
+        out.d = dr.replace_grad(ray.d, dr.select(ok, r.d, ray.d))
+        return out
 
     def _shadow_edge(self, scene, si, ds, shadowed, moving, distance):
         """The shadow edges' boundary term at a vertex, for its emitter samples
@@ -1141,7 +1243,7 @@ class LGPRBIntegrator(RBIntegrator):
         return term
 
     def _propagate(self, mode, scene, bsdf, bsdf_ctx, si, ray_next, hit_next, L, Le, Lr_dir,
-                   δL, active_next, moves):
+                   δL, active_next, moves, chain_delta=None, w_turn=None):
         """The differentiable radiance leaving this vertex: its emission,
         its emitter sample, and the rest of the path (L, already replayed
         out of the primal value) through the BSDF value and, where geometry
@@ -1149,7 +1251,10 @@ class LGPRBIntegrator(RBIntegrator):
         backward or forward. Returns δL (forward: with this vertex's
         derivative added). Where nothing moves, the direction to the next
         vertex and its measure carry no derivative: the next vertex is not
-        computed."""
+        computed. On the ``chain_delta`` lanes (a delta vertex of the
+        camera's chain, :meth:`_chain_ray`) the rest of the path goes
+        through the sample's attached weight ``w_turn`` instead, and the
+        next vertex has no measure of its own (it follows this one)."""
         if moves:
             si_next = compute_interaction(scene, ray_next, hit_next, mi.RayFlags.Minimal,
                                           active_next)
@@ -1163,7 +1268,10 @@ class LGPRBIntegrator(RBIntegrator):
             else:
                 J, wo_world = 1.0, ray_next.d
             bsdf_val = bsdf.eval(bsdf_ctx, si, si.to_local(wo_world), active_next)
-            Lr_ind = L * dr.relative_grad(bsdf_val) * J
+            factor = dr.relative_grad(bsdf_val) * J
+            if chain_delta is not None:
+                factor = dr.select(chain_delta, dr.relative_grad(w_turn), factor)
+            Lr_ind = L * factor
             Lo = Le + Lr_dir + Lr_ind
             if mode == dr.ADMode.Backward:
                 dr.backward_from(δL * Lo)

@@ -489,19 +489,22 @@ class LGSurface(mi.Mesh):
         si.wavelengths = ray.wavelengths
         si.shape = dr.select(active, self._shape_ptr(), dr.zeros(mi.ShapePtr))
         si.prim_index = mi.UInt32(0)
-        if self.gradient_keys():                 # (none while gradients are suspended)
+        # (no gradients while they are suspended)
+        if self.gradient_keys() or dr.grad_enabled(ray.o) or dr.grad_enabled(ray.d):
             self._attach(ray, si, ok, grad)
         return dr.select(active, si, dr.zeros(mi.SurfaceInteraction3f))
 
     # ---- Derivatives with respect to the scene parameters -------------------
 
     def _attach(self, ray, si, uv_ok, grad0):
-        """Attach the hit to the parameters that have gradients (in place):
-        the search is not differentiated; t, p, n, uv and the tangents get
-        the derivatives of the implicit-function theorem. With F(t, theta) =
-        f(W(theta)^-1 (o + t d); theta), the hit t0 (F = 0) moves by
-        dt = -dF / (dF/dt): t = t0 - (F - F0) / (grad f . d_obj), whose value
-        is t0 and whose derivative is that; the point, the normal
+        """Attach the hit to the parameters that have gradients and to the
+        ray where it carries derivatives (in place): the search is not
+        differentiated; t, p, n, uv and the tangents get the derivatives of
+        the implicit-function theorem. With F(t, theta) =
+        f(W(theta)^-1 (o + t d); theta), o and d the ray's (attached), the
+        hit t0 (F = 0) moves by dt = -dF / (dF/dt):
+        t = t0 - (F - F0) / (grad f . d_obj), whose value
+        is t0 and whose derivative is that; the point o + t d, the normal
         (W^-T grad f at the moved point) and the uv follow from t. The values
         are those of the search (:func:`drjit.replace_grad`); only the
         derivatives are new. Lanes without a hit, or where a derivative is
@@ -514,8 +517,8 @@ class LGSurface(mi.Mesh):
         m = DrJitMath(mi.Float, bound=bound)
         W = mi.Matrix4f(self._to_world.matrix)
         Winv = dr.rcp(W)
-        o = dr.detach(mi.Vector3f(ray.o))
-        d = dr.detach(mi.Vector3f(ray.d))
+        o = mi.Vector3f(ray.o)
+        d = mi.Vector3f(ray.d)
         o_obj, d_obj = _affine(Winv, o), _linear(Winv, d)
         t0 = dr.detach(si.t)
         ok = dr.isfinite(t0)
@@ -1171,7 +1174,13 @@ def _affine(M, p):
 
 def _spherical_uv(q, c, grad):
     """uv = spherical angles of q about c, and the surface tangents dq/du, dq/dv
-    in the plane orthogonal to ``grad``: solve [grad u; grad v; grad f] X = I."""
+    in the plane orthogonal to ``grad``: solve [grad u; grad v; grad f] X = I.
+    ``ok`` is false where that system is near singular: grad u and grad v
+    are orthogonal and span the plane orthogonal to q - c, so its
+    determinant over |grad u| |grad v| |grad f| is the cosine between
+    grad f and q - c; below 1e-3 (a surface that q - c nearly grazes, e.g.
+    a plane through c) the tangents and their derivatives would be
+    rounding noise, as large as 1e3 times their size or more."""
     x, y, z = q[0] - c[0], q[1] - c[1], q[2] - c[2]
     rho2 = dr.fma(x, x, y * y)
     r2 = rho2 + z * z
@@ -1183,6 +1192,7 @@ def _spherical_uv(q, c, grad):
     b = mi.Vector3f(x * z / rho, y * z / rho, -rho) / (dr.pi * r2)  # grad v
     g = mi.Vector3f(grad)
     det = dr.dot(a, dr.cross(b, g))
-    ok = (rho2 > 0) & (det != 0) & dr.isfinite(det)
+    scale = dr.norm(a) * dr.norm(b) * dr.norm(g)
+    ok = (rho2 > 0) & dr.isfinite(det) & (dr.abs(det) > 1e-3 * scale)
     inv = dr.rcp(det)
     return mi.Vector2f(u, v), dr.cross(b, g) * inv, dr.cross(g, a) * inv, ok
