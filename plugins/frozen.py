@@ -28,7 +28,10 @@ nested call) is traced: a frozen function must not record or replay
 inside another one's recording. Renders that record derivatives are
 never frozen: only a render with gradients suspended (``mi.render``'s
 primal render) is; gradient passes (Mitsuba's default ones render again
-with gradients on) are traced. Set
+with gradients on) are traced. An integrator whose
+``FREEZE_AUTO_OPAQUE`` is False records with every input opaque (Dr.Jit's
+``auto_opaque=False``; a recording may then compile kernels the traced
+render did not: cornell.xml's under lg_path did). Set
 ``LGSHAPE_NO_FREEZE=1`` to trace every render.
 """
 from __future__ import annotations
@@ -140,7 +143,8 @@ class _Recordings:
         def run(scene, sensor, seed, spp, key, arrays):
             return _render_and_reseed(base, owner(), scene, sensor, seed, spp)
 
-        self.fn = dr.freeze(run, limit=LIMIT, warn_after=2 ** 30)
+        self.fn = dr.freeze(run, limit=LIMIT, warn_after=2 ** 30,
+                            auto_opaque=getattr(integrator, "FREEZE_AUTO_OPAQUE", True))
 
 
 def _recording_gradients() -> bool:

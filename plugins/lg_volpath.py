@@ -284,6 +284,12 @@ class LGVolpathIntegrator(mi.SamplingIntegrator):
 
     # Mitsuba's render, with the infinite emitters given the scene's current
     # bounds first (:func:`.common.refresh_infinite_emitters`).
+    # Its frozen replays, with Dr.Jit's default auto-opaque literals, gave
+    # another path on one pixel of test_57's scene (box filter) in 2 of 4
+    # fresh scenes, the traced renders all equal (cause not found): it
+    # records with every input opaque (test_57::test06; test_56 still
+    # finds no kernel compiled after the first render).
+    FREEZE_AUTO_OPAQUE = False
     render = frozen.sampling_render
 
     # Not differentiable: a gradient render (mi.render(scene, params), then
