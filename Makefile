@@ -23,7 +23,7 @@ render: $(VENV)/.installed
 # outside site-packages, as Python's faulthandler printed them).
 test: $(VENV)/.installed
 	@mkdir -p .pytest_cache; err=.pytest_cache/lgshape-stderr; \
-	$(VENV)/bin/python -m pytest -q 2> >(tee $$err >&2); rc=$$?; sleep 1; \
+	$(VENV)/bin/python -m pytest -q 2> >(tee $$err >&2); rc=$$?; wait $$!; \
 	if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; \
 	if [ $$rc -gt 128 ] && [ -f .pytest_cache/lgshape-current-test ]; then \
 	  echo "pytest died of signal $$((rc - 128)) in $$(cat .pytest_cache/lgshape-current-test)"; \

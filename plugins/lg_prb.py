@@ -304,7 +304,7 @@ class LGPRBIntegrator(RBIntegrator):
     #: points is what their variance depends on.
     SHADOW_BAND = 2.0
     #: The delta vertices from the camera (a mirror, glass) whose turn the
-    #: replay follows as a moving lgsurface's normal moves (:meth:`_chain_ray`)
+    #: replay follows as a moving lgsurface's normal moves (:meth:`_chain_rays`)
     CHAIN = 4
     SEES_LGSURFACES = True              # traces lgsurfaces (:func:`.checks.sees_lgsurfaces`)
     DIFFERENTIATES_LGSURFACES = True    # (:func:`.checks.differentiates_lgsurfaces`)
@@ -397,7 +397,7 @@ class LGPRBIntegrator(RBIntegrator):
         - its BSDF has a delta reflection or transmission (a mirror, glass)
           and paths go on after it (``max_depth`` >= 2): the replay turns
           the reflected and refracted directions with the normals along the
-          camera's first delta vertices (:meth:`_chain_ray`), but a delta
+          camera's first delta vertices (:meth:`_chain_rays`), but a delta
           vertex after a smooth bounce, or past :attr:`CHAIN`, keeps the
           direction to the next vertex fixed in the world; the silhouettes
           seen in it have no term (:meth:`_bounce_term`); and its own
@@ -806,7 +806,7 @@ class LGPRBIntegrator(RBIntegrator):
             with dr.resume_grad():
                 moving = self._moving(scene)
 
-        # The delta vertices from the camera (mirror, glass: _chain_ray)
+        # The delta vertices from the camera (mirror, glass: _chain_rays)
         # that the replay turns with a moving lgsurface's normal: how many
         # it follows, and the lane's own (their hits, samples and count)
         chain = 0
@@ -831,10 +831,9 @@ class LGPRBIntegrator(RBIntegrator):
             with dr.resume_grad(when=not primal):
                 ray_in, ray_back = ray, ray_prev
                 if dr.hint(chain > 0, mode="scalar"):
-                    ray_in = self._chain_ray(scene, chain, first[0], ray, chain_hits, chain_u1,
-                                             chain_u2, chain_n, depth)
-                    ray_back = self._chain_ray(scene, chain, first[0], ray_prev, chain_hits,
-                                               chain_u1, chain_u2, chain_n, depth - 1)
+                    ray_in, ray_back = self._chain_rays(scene, chain, first[0], ray, ray_prev,
+                                                        chain_hits, chain_u1, chain_u2,
+                                                        chain_n, depth)
                 si = compute_interaction(scene, ray_in, hit, active=active)
                 # Does geometry move with the parameters? (Known while
                 # tracing: the same for every vertex of every path.)
@@ -917,9 +916,9 @@ class LGPRBIntegrator(RBIntegrator):
             # a delta vertex of the camera's chain that the next one follows:
             # its sample's weight, attached (the Fresnel factor moves with
             # the normal; no area measure for the next vertex: it is not free)
-            turned = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) & si.is_valid()
             chain_delta, w_turn = None, None
             if dr.hint(chain > 0, mode="scalar"):
+                turned = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta) & si.is_valid()
                 chain_delta = active_next & turned & (depth == chain_n) & (depth < chain)
                 with dr.resume_grad():
                     w_turn = bsdf.sample(bsdf_ctx, si, sample_1, sample_2, chain_delta)[1]
@@ -1008,29 +1007,37 @@ class LGPRBIntegrator(RBIntegrator):
         return hits, u1, u2, dr.select(grow, n + 1, n)
 
     @staticmethod
-    def _chain_ray(scene, chain, camera_ray, ray, hits, u1, u2, n, k):
-        """``ray`` (detached: the ray into vertex ``k``) with the derivatives
-        of the ray that the camera's delta chain sends there, where vertices
-        0 .. k - 1 all had a delta BSDF sample (``k <= n``, the lane's chain,
-        and ``k <= chain``): the camera ray turned at each by its BSDF's
-        sample (the same samples), each vertex following its surface's
-        parameters and the turned ray before it (the implicit-function
-        theorem along an attached ray; Mitsuba's shapes follow it too). A
-        mirror's or glass's reflected and refracted directions then turn
-        with its normal, and what is seen in it moves with them. Elsewhere
-        ``ray`` as it is (a vertex moving with its own surface alone)."""
+    def _chain_rays(scene, chain, camera_ray, ray, ray_prev, hits, u1, u2, n, k):
+        """``ray`` and ``ray_prev`` (detached: the rays into vertices ``k``
+        and ``k`` - 1) with the derivatives of the rays that the camera's
+        delta chain sends there, where the vertices before them all had a
+        delta BSDF sample (the ray into vertex m: ``m <= n``, the lane's
+        chain, and ``m <= chain``): the camera ray turned at each by its
+        BSDF's sample (the same samples), each vertex following its
+        surface's parameters and the turned ray before it (the
+        implicit-function theorem along an attached ray; Mitsuba's shapes
+        follow it too). A mirror's or glass's reflected and refracted
+        directions then turn with its normal, and what is seen in it moves
+        with them. Elsewhere the rays as they are (a vertex moving with its
+        own surface alone). One walk along the chain gives both."""
         ctx = mi.BSDFContext()
         r = mi.Ray3f(camera_ray)
+        r_back = mi.Ray3f(camera_ray)
         for j in range(chain):
+            r_back = dr.select(k == j + 1, r, r_back)     # the ray into vertex j
             go = (j < k) & (j < n)
             si = compute_interaction(scene, r, hits[j], active=go)
             bs = si.bsdf(r).sample(ctx, si, u1[j], u2[j], go)[0]
             r = dr.select(go, si.spawn_ray(si.to_world(bs.wo)), r)
-        ok = (k <= n) & (k <= chain)
-        out = mi.Ray3f(ray)
-        out.o = dr.replace_grad(ray.o, dr.select(ok, r.o, ray.o))
-        out.d = dr.replace_grad(ray.d, dr.select(ok, r.d, ray.d))
-        return out
+        r_back = dr.select(k == chain + 1, r, r_back)
+
+        def attached(detached, chained, m):
+            ok = (m <= n) & (m <= chain)
+            out = mi.Ray3f(detached)
+            out.o = dr.replace_grad(detached.o, dr.select(ok, chained.o, detached.o))
+            out.d = dr.replace_grad(detached.d, dr.select(ok, chained.d, detached.d))
+            return out
+        return attached(ray, r, k), attached(ray_prev, r_back, k - 1)
 
     def _shadow_edge(self, scene, si, ds, shadowed, moving, distance):
         """The shadow edges' boundary term at a vertex, for its emitter samples
@@ -1252,7 +1259,7 @@ class LGPRBIntegrator(RBIntegrator):
         derivative added). Where nothing moves, the direction to the next
         vertex and its measure carry no derivative: the next vertex is not
         computed. On the ``chain_delta`` lanes (a delta vertex of the
-        camera's chain, :meth:`_chain_ray`) the rest of the path goes
+        camera's chain, :meth:`_chain_rays`) the rest of the path goes
         through the sample's attached weight ``w_turn`` instead, and the
         next vertex has no measure of its own (it follows this one)."""
         if moves:
