@@ -322,12 +322,16 @@ def render_passes(mi, scene, sensor, spp, progress=None):
     if bar is not None:
         bar.close()
     names = [field.name for field in sensor.film().bitmap().struct_()]
+    # (an AOV integrator without a nested one returns its AOVs alone: the
+    # film's last channels)
+    names = names[len(names) - total.shape[2]:]
     return (total / spp).astype(np.float32), names, time.perf_counter() - t0
 
 
 def preview(mi, bitmap):
-    """An 8-bit sRGB PNG: the colour channels; when they are all zero (an AOV
-    render without a nested integrator), the first AOV, scaled to [0, 1]."""
+    """An 8-bit sRGB PNG: the colour channels; where there are none or they
+    are all zero (an AOV render without a nested integrator), the first AOV,
+    scaled to [0, 1]."""
     layers = dict(bitmap.split())
     root = layers.pop("<root>", None)
     if root is None or (not np.any(np.array(root)) and layers):

@@ -36,7 +36,8 @@ class LGAOVIntegrator(mi.SamplingIntegrator):
      * - (Nested plugin)
        - |integrator|
        - Optional: one integrator (e.g. ``lg_path``) whose image fills the
-         R, G, B channels; without it they are 0.
+         R, G, B channels; without it the rendered image holds the AOV
+         channels alone (as Mitsuba's ``aov`` returns it).
 
     Channels are named as by Mitsuba's ``aov``: ``<name>.T`` for depth,
     ``<name>.X/.Y/.Z`` for positions and normals, ``<name>.U/.V`` for uv.
@@ -111,9 +112,15 @@ class LGAOVIntegrator(mi.SamplingIntegrator):
         L, valid, nested_aovs = self.nested.sample(scene, sampler, ray, medium, active)
         return L, valid, values + list(nested_aovs)
 
-    # Mitsuba's render, with the infinite emitters given the scene's current
-    # bounds first (:func:`.common.refresh_infinite_emitters`).
-    render = frozen.sampling_render
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        """Mitsuba's render (:func:`.frozen.sampling_render`); without a nested
+        integrator the image holds the AOV channels alone, as Mitsuba's
+        ``aov`` returns it (the film keeps its R, G, B channels, at 0)."""
+        image = frozen.sampling_render(self, scene, sensor, seed, spp, develop, evaluate)
+        if self.nested is None and develop:
+            n = len(self.aov_names())
+            image = image[..., image.shape[2] - n:]     # (a nested call: already so)
+        return image
 
     def aov_names(self):
         names = [name + suffix for name, kind in self.aovs for suffix in AOV_TYPES[kind]]

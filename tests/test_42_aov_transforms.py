@@ -51,11 +51,41 @@ def aov_scene(shape, aovs="dd.y:depth,nn:sh_normal,gn:geo_normal,pp:position,uv:
 
 
 def channels(scene):
-    """Render; return {channel name: (RES, RES) array}."""
+    """Render; return {channel name: (RES, RES) array} (without a nested
+    integrator the image holds the AOVs alone: the film's last channels)."""
     img = np.array(mi.render(scene), dtype=np.float64)
     names = [f.name for f in scene.sensors()[0].film().bitmap().struct_()]
-    assert len(names) == img.shape[2]
+    names = names[len(names) - img.shape[2]:]
+    assert names and names[0] not in ("R", "G", "B")
     return {n: img[..., i] for i, n in enumerate(names)}
+
+
+@pytest.mark.parametrize("pixel_format", ["rgb", "rgba"])
+@pytest.mark.parametrize("nested", [False, True])
+def test00_channels_as_mitsubas_aov(pixel_format, nested):
+    # Oracle: Mitsuba's aov on the same scene of native shapes (lg_aov sees
+    # them through Mitsuba's own intersection): the same channels, and the
+    # same values (the same sample stream: the AOVs draw no samples).
+    def scene(kind):
+        integ = {"type": kind, "aovs": "dd:depth,nn:sh_normal,pp:position"}
+        if nested:
+            integ["image"] = {"type": "path" if kind == "aov" else "lg_path", "max_depth": 3}
+        return mi.load_dict({
+            "type": "scene", "integrator": integ,
+            "sensor": {"type": "perspective", "fov": 40,
+                       "to_world": mi.ScalarTransform4f().look_at([0, -4, 1], [0, 0, 0],
+                                                                  [0, 0, 1]),
+                       "film": {"type": "hdrfilm", "width": 12, "height": 10,
+                                "pixel_format": pixel_format, "rfilter": {"type": "box"}},
+                       "sampler": {"type": "independent", "sample_count": 4}},
+            "env": {"type": "constant", "radiance": 0.5},
+            "ball": {"type": "sphere", "radius": 0.8},
+            "floor": {"type": "rectangle",
+                      "to_world": mi.ScalarTransform4f().translate([0, 0, -1]).scale(3)}})
+    ref = np.array(mi.render(scene("aov"), seed=2))
+    img = np.array(mi.render(scene("lg_aov"), seed=2))
+    assert img.shape == ref.shape
+    assert np.allclose(img, ref, rtol=1e-5, atol=1e-5)
 
 
 def stack(ch, name, suffixes=".X.Y.Z"):
@@ -73,10 +103,13 @@ def pixel_rays(scene):
 
 
 def test01_aov_channels_named_like_mitsuba():
-    # Oracle: Mitsuba's `aov` channel naming (3.9.1): <name>.T, .X/.Y/.Z, .U/.V.
-    ch = channels(aov_scene({"type": "lgsurface", "surface": "torus"}))
-    assert list(ch) == ["R", "G", "B", "dd.y.T", "nn.X", "nn.Y", "nn.Z", "gn.X", "gn.Y", "gn.Z",
-                        "pp.X", "pp.Y", "pp.Z", "uv.U", "uv.V"]
+    # Oracle: Mitsuba's `aov` channel naming (3.9.1): <name>.T, .X/.Y/.Z, .U/.V;
+    # the film holds R, G, B before them, the rendered image the AOVs alone.
+    scene = aov_scene({"type": "lgsurface", "surface": "torus"})
+    aovs = ["dd.y.T", "nn.X", "nn.Y", "nn.Z", "gn.X", "gn.Y", "gn.Z",
+            "pp.X", "pp.Y", "pp.Z", "uv.U", "uv.V"]
+    assert list(channels(scene)) == aovs
+    assert [f.name for f in scene.sensors()[0].film().bitmap().struct_()] == ["R", "G", "B"] + aovs
 
 
 def test02_aov_depth_and_normals_vs_kernel():
