@@ -42,6 +42,7 @@ another Surface of the same expression shape reuses the compiled kernels.
 """
 from __future__ import annotations
 
+import contextlib
 import gc
 import math
 import numbers
@@ -631,16 +632,34 @@ def _freezable(o, d, t_min, t_max, active):
                for v in (t_min, t_max, active))
 
 
-def call_frozen(fn, *args):
-    """fn(*args) for a frozen function, with Python's cyclic garbage
-    collector held off: a collection while it records could free arrays
-    that map host memory, which Dr.Jit 1.5 does not allow then (it aborts
-    the process)."""
-    enabled = gc.isenabled()
+@contextlib.contextmanager
+def collection_paused():
+    """Python's cyclic garbage collector paused within it (restored after).
+
+    Dr.Jit 1.5 keys the callables of a virtual call traced into a kernel by
+    their code and by whether the call has one instance or several, but names
+    them by their code alone. A vcall over Mitsuba's shapes has one instance
+    per shape alive in the process, so when the collector frees an earlier
+    scene's shapes between two vcalls traced into one kernel (one call sees
+    two shapes, the next one), the kernel defines one function twice and
+    LLVM refuses it: the process aborts ("invalid redefinition of function").
+    The lg integrators' renders and gradient passes run within it (their
+    entry points are decorated with it); the collector runs again after
+    them."""
+    was = gc.isenabled()
     gc.disable()
     try:
-        return fn(*args)
+        yield
     finally:
-        if enabled:
+        if was:
             gc.enable()
+
+
+def call_frozen(fn, *args):
+    """fn(*args) for a frozen function, with Python's cyclic garbage
+    collector paused (:func:`collection_paused`): a collection while it
+    records could also free arrays that map host memory, which Dr.Jit 1.5
+    does not allow then (it aborts the process)."""
+    with collection_paused():
+        return fn(*args)
 

@@ -46,7 +46,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from lgshape.trace import call_frozen
+from lgshape.trace import call_frozen, collection_paused
 
 from .common import check, traced_searches
 
@@ -211,6 +211,7 @@ def render(integrator, base, scene, sensor=0, seed=0, spp=0, develop=True, evalu
         return image
 
 
+@collection_paused()
 def sampling_render(integrator, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
     """The ``render`` of the lg integrators built on ``mi.SamplingIntegrator``
     (``mi.render`` calls the Python method): :func:`.common.check`, then

@@ -4,6 +4,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from lgshape.trace import collection_paused
+
 from . import common, frozen
 from .common import ray_intersect
 
@@ -112,6 +114,7 @@ class LGAOVIntegrator(mi.SamplingIntegrator):
         L, valid, nested_aovs = self.nested.sample(scene, sampler, ray, medium, active)
         return L, valid, values + list(nested_aovs)
 
+    @collection_paused()
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         """Mitsuba's render (:func:`.frozen.sampling_render`); without a nested
         integrator the image holds the AOV channels alone, as Mitsuba's

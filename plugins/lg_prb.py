@@ -8,6 +8,8 @@ import drjit as dr
 import mitsuba as mi
 from mitsuba.python.ad.integrators.common import RBIntegrator, solid_angle_to_area_jacobian
 
+from lgshape.trace import collection_paused
+
 from . import common, frozen
 from .common import (Hit, compute_interaction, mis_weight, pdf_emitter_direction,
                      ray_intersect_preliminary, ray_test, sample_emitter_direction,
@@ -338,6 +340,7 @@ class LGPRBIntegrator(RBIntegrator):
     # checked before tracing (_check_differentiable), and one raised while
     # tracing, which Dr.Jit's loops wrap in a RuntimeError, is unwrapped
     # (_unwrapped).
+    @collection_paused()
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         common.check(self, scene, sensor)
         self._check_differentiable(scene)
@@ -345,6 +348,7 @@ class LGPRBIntegrator(RBIntegrator):
             return frozen.render(self, RBIntegrator.render, scene, sensor,
                                  seed, spp, develop, evaluate)
 
+    @collection_paused()
     def render_forward(self, scene, params, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
         self._check_differentiable(scene)
@@ -358,6 +362,7 @@ class LGPRBIntegrator(RBIntegrator):
                                                 spp)
         return grad
 
+    @collection_paused()
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
         self._check_differentiable(scene)

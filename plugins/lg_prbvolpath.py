@@ -7,6 +7,8 @@ import drjit as dr
 import mitsuba as mi
 from mitsuba.ad.integrators.common import RBIntegrator
 
+from lgshape.trace import collection_paused
+
 from . import common, frozen
 from .common import (mis_weight, pdf_emitter_direction, ray_intersect,
                      ray_intersect_preliminary, sample_emitter_direction, skip_area_emitters)
@@ -193,6 +195,7 @@ class LGPRBVolpathIntegrator(RBIntegrator):
                 return f"its {side} medium is heterogeneous"
         return None
 
+    @collection_paused()
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         common.check(self, scene, sensor)
         return frozen.render(self, RBIntegrator.render, scene, sensor, seed, spp,
@@ -209,6 +212,7 @@ class LGPRBVolpathIntegrator(RBIntegrator):
             f"use dr.backward, or dr.forward with Mitsuba's 'prb' / lgshape's 'lg_prb' for "
             f"scenes without media")
 
+    @collection_paused()
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
         common.check(self, scene, sensor)
         self._refuse_uncovered(scene, params)
