@@ -20,8 +20,9 @@ render: $(VENV)/.installed
 # stderr is also kept in .pytest_cache/lgshape-stderr: where pytest dies of a
 # signal, the end of the output repeats what CI's tail would lose (the first
 # lines naming Dr.Jit or the fatal error, the lines printed just before
-# Python's report (a C library's or C++ runtime's message), and the dying thread's frames
-# outside site-packages, as Python's faulthandler printed them).
+# Python's report (a C library's or C++ runtime's message), and the dying
+# thread's frames outside site-packages, as Python's faulthandler printed
+# them).
 test: $(VENV)/.installed
 	@mkdir -p .pytest_cache; err=.pytest_cache/lgshape-stderr; \
 	$(VENV)/bin/python -m pytest -q 2> >(tee $$err >&2); rc=$$?; wait $$!; \
