@@ -120,9 +120,12 @@ class LGAOVIntegrator(mi.SamplingIntegrator):
         integrator the image holds the AOV channels alone, as Mitsuba's
         ``aov`` returns it (the film keeps its R, G, B channels, at 0)."""
         image = frozen.sampling_render(self, scene, sensor, seed, spp, develop, evaluate)
-        if self.nested is None and develop:
-            n = len(self.aov_names())
-            image = image[..., image.shape[2] - n:]     # (a nested call: already so)
+        n = len(self.aov_names())
+        if self.nested is None and develop and image.shape[2] > n:
+            # (Mitsuba's render enters this method again with the sensor
+            # object: the inner call's image is already sliced, and slicing
+            # it again would cost a gather kernel)
+            image = image[..., image.shape[2] - n:]
         return image
 
     def aov_names(self):
