@@ -239,6 +239,13 @@ class LGPRBIntegrator(RBIntegrator):
        - How many paths estimate the radiance on each side (L_s, L_b) of
          a silhouette's band sample (the mean of them; traced on the band's
          samples alone, they cost little). (Default: 8)
+     * - stratified
+       - |bool|
+       - Stratify a gradient pass's camera rays over each pixel (jittered
+         over a grid of its cells) where it computes boundary terms: the
+         fraction of a pixel's samples that fall in a silhouette's band then
+         varies far less. False: Mitsuba's camera rays, the samples that
+         ``lg_path`` takes at the same seed. (Default: |true|)
      * - light_band
        - |float|
        - Width of the band inside the edges of an emitting lgsurface's
@@ -266,10 +273,13 @@ class LGPRBIntegrator(RBIntegrator):
     search stays detached and each hit is attached to the parameters by the
     implicit-function theorem (:meth:`LGSurface.compute_surface_interaction`),
     so shading, normals, emitter terms and the next bounce carry the
-    derivatives. The primary silhouettes of moving lgsurfaces add their
-    boundary term (:meth:`_silhouettes`: relaxed over a band of
-    ``band_width`` pixels, sampled by a second set of camera rays, stratified
-    over each pixel: :meth:`_stratified_rays`), and so do the shadow edges
+    derivatives. The silhouettes of moving lgsurfaces seen along the
+    replay's paths, from the camera and after each of the first
+    ``bounce_edges`` bounces (in mirrors, through glass, in
+    interreflections), add their boundary term (:meth:`_replay_edges`:
+    relaxed over a band of ``band_width`` pixels, on the hits that the
+    primal pass records; the gradient pass's camera rays stratified over
+    each pixel: :meth:`_stratified_rays`), and so do the shadow edges
     they cast on the emitter samples, at every vertex (:meth:`_shadow_edge`:
     relaxed over twice ``band_width`` pixels at the shaded point, carried to
     the occluder). The light of an emitting lgsurface follows its
@@ -277,9 +287,7 @@ class LGPRBIntegrator(RBIntegrator):
     and the edge of its light seen from each shading point, its silhouette
     and the shadows moving lgsurfaces cast on it, has its boundary term
     (:meth:`_light_edges`, over ``light_band`` of the light's angular
-    radius). Silhouettes seen after a bounce (in mirrors, through glass, in
-    interreflections) have theirs for ``bounce_edges`` bounces
-    (:meth:`_bounce_term`). Left out: silhouettes seen after more bounces,
+    radius). Left out: silhouettes seen after more bounces,
     edges where a surface is cut by its box (a gradient pass says so once:
     :meth:`uncovered`), and native shapes' boundaries (``prb`` leaves all
     boundaries out).
@@ -320,6 +328,8 @@ class LGPRBIntegrator(RBIntegrator):
         self.light_band = float(props.get("light_band", 0.05))
         self.bounce_edges = int(props.get("bounce_edges", 2))
         self.band_paths = int(props.get("band_paths", 8))
+        self.stratified = bool(props.get("stratified", True))
+        self._edges = None                  # (moving, seed) in a gradient pass: _edges_on
         self._pixel = (0.0, 0.0)            # (angle, footprint): _pixel_spread
         self._cut = {}                      # shape -> (surface, cut by its box?): _cut_by_box
         if not self.band_width > 0:
@@ -354,13 +364,15 @@ class LGPRBIntegrator(RBIntegrator):
         self._check_differentiable(scene)
         self._warn_uncovered(scene)
         self._pixel = self._pixel_spread(scene, sensor)
-        with _unwrapped(), common.traced_searches(scene):
+        with _unwrapped(), common.traced_searches(scene), self._edges_on(scene, seed):
             grad = super().render_forward(scene, params, sensor, seed, spp)
-            moving = self._moving(scene) if self.boundary else []
-            if moving:
-                grad = grad + self._silhouettes(dr.ADMode.Forward, scene, moving, sensor, seed,
-                                                spp)
-        return grad
+            if self._forward_edges is not None:
+                # (propagated after the replay's image: Dr.Jit's forward_to
+                # clears the graph that the replay's derivatives go through)
+                # (the replay's image first: the film is reused)
+                dr.eval(grad)
+                grad = grad + self._replay_edges_forward(scene, sensor)
+            return grad
 
     @collection_paused()
     def render_backward(self, scene, params, grad_in, sensor=0, seed=0, spp=0):
@@ -368,11 +380,36 @@ class LGPRBIntegrator(RBIntegrator):
         self._check_differentiable(scene)
         self._warn_uncovered(scene)
         self._pixel = self._pixel_spread(scene, sensor)
-        with _unwrapped(), common.traced_searches(scene):
+        with _unwrapped(), common.traced_searches(scene), self._edges_on(scene, seed):
             super().render_backward(scene, params, grad_in, sensor, seed, spp)
-            moving = self._moving(scene) if self.boundary else []
-            if moving:
-                self._silhouettes(dr.ADMode.Backward, scene, moving, sensor, seed, spp, grad_in)
+
+    @contextlib.contextmanager
+    def _edges_on(self, scene, seed):
+        """Within it (a gradient pass), the boundary terms of the moving
+        lgsurfaces' silhouettes are added to the replay's own samples
+        (:meth:`_replay_edges`): the camera rays are stratified over each
+        pixel (:meth:`sample_rays`), the primal pass records the slots the
+        terms need (:meth:`_slot_new`). Nothing changes where ``boundary``
+        is off or no lgsurface moves."""
+        moving = self._moving(scene) if self.boundary else []
+        self._edges = (moving, seed) if moving else None
+        self._forward_edges = None          # forward mode: (terms, camera samples)
+        try:
+            yield
+        finally:
+            self._edges = self._forward_edges = self._camera = None
+
+    def sample_rays(self, scene, sensor, sampler):
+        """Mitsuba's camera rays; in a gradient pass with boundary terms
+        (:meth:`_edges_on`) and ``stratified`` on, :meth:`_stratified_rays`'s."""
+        if getattr(self, "_edges", None) is None:
+            return super().sample_rays(scene, sensor, sampler)
+        if self.stratified:
+            out = self._stratified_rays(scene, sensor, sampler, self._edges[1])
+        else:
+            out = super().sample_rays(scene, sensor, sampler)
+        self._camera = out                  # (the forward term's splat)
+        return out
 
     @staticmethod
     def _check_differentiable(scene):
@@ -396,7 +433,7 @@ class LGPRBIntegrator(RBIntegrator):
           component: a mirror, glass, a null surface), and the bounces that
           can see light (``max_depth`` - 1, unbounded at -1) outnumber
           ``bounce_edges``, the bounces whose silhouettes have their term
-          (:meth:`_bounce_term`);
+          (:meth:`_replay_edges`);
         - ``boundary`` is on and f changes sign on its box (:func:`_cut_by_box`):
           the edges where the box cuts the surface have no boundary term;
         - its BSDF has a delta reflection or transmission (a mirror, glass)
@@ -405,7 +442,7 @@ class LGPRBIntegrator(RBIntegrator):
           camera's first delta vertices (:meth:`_chain_rays`), but a delta
           vertex after a smooth bounce, or past :attr:`CHAIN`, keeps the
           direction to the next vertex fixed in the world; the silhouettes
-          seen in it have no term (:meth:`_bounce_term`); and its own
+          seen in it have no term (:meth:`_replay_edges`); and its own
           silhouette's band sees a curved mirror's image change fast. Said
           whether or not ``boundary`` is on.
 
@@ -487,93 +524,6 @@ class LGPRBIntegrator(RBIntegrator):
         """The lgsurfaces whose parameters have gradients (by scene index)."""
         return [k for k, s in enumerate(common.lg_shapes(scene)) if s.gradient_keys()]
 
-    def _silhouettes(self, mode, scene, moving, sensor, seed, spp, grad_in=None):
-        """The boundary term of the primary silhouettes of the lgsurfaces
-        whose parameters move (relaxed over a band of ``band_width`` pixels
-        on the inside of each silhouette): with H = [S < 0] the ray's hit of
-        the surface and S its distance proxy to the silhouette
-        (:meth:`LGSurface.silhouette`), a pixel I = H L_s + (1 - H) L_b
-        moves by (L_s - L_b) dH = -(L_s - L_b) delta(S) dS; delta(S) is
-        replaced by the band's weight w (which integrates to 1 across it),
-        L_s is the hit ray's radiance and L_b that of the ray continued past
-        the surface's exit (the background the silhouette uncovers), both
-        one path sample. Forward: the gradient image of the term; backward:
-        the term's adjoint propagated (grad_in). ``moving``: the indices of
-        those lgsurfaces (:meth:`_moving`). Under ``hide_emitters`` the
-        camera rays continue past the area emitters they hit, as the paths
-        do (:func:`.common.skip_area_emitters`): a silhouette behind a hidden
-        emitter has its term, a hidden emitting lgsurface none."""
-        if isinstance(sensor, int):
-            sensor = scene.sensors()[sensor]
-        film = sensor.film()
-        lgs = common.lg_shapes(scene)
-        with dr.suspend_grad(), common.traced_searches(scene):
-            sampler, spp = self.prepare(sensor, mi.sample_tea_32(seed, 0x51)[0], spp,
-                                        self.aov_names())
-            ray, weight, pos = self._stratified_rays(scene, sensor, sampler, seed)
-            hit = ray_intersect_preliminary(scene, ray)
-            dr.eval(ray, weight, hit.pi, hit.lg, hit.t)     # (not searched again by each use)
-            # the camera ray as the paths see it: past the area emitters it
-            # hides (skip_area_emitters), `skipped` further from the camera
-            seen = mi.Ray3f(ray)
-            skipped = mi.Float(0)
-            if self.hide_emitters:
-                seen, hit = skip_area_emitters(scene, seen, hit)
-                skipped = dr.dot(mi.Vector3f(seen.o) - mi.Vector3f(ray.o), mi.Vector3f(ray.d))
-            # the band's width: band_width pixels at the hit's distance
-            width = self._band(dr.detach(hit.t) + skipped,
-                               dr.norm(mi.Vector3f(ray.d_x) - mi.Vector3f(ray.d)),
-                               dr.norm(mi.Vector3f(ray.o_x) - mi.Vector3f(ray.o)))
-            S = mi.Float(0)
-            w = mi.Float(0)
-            t_exit = mi.Float(dr.inf)
-            band = mi.Bool(False)
-            leaves = common.WideLeaves(dr.width(ray)) if mode == dr.ADMode.Backward else None
-            for k in moving:
-                mine = hit.lg == k + 1
-                with dr.resume_grad():
-                    S_k, w_k, te_k, band_k = lgs[k].silhouette(seen, hit.t, width, mine, leaves)
-                    S = dr.select(mine, S_k, S)
-                w, t_exit, band = (dr.select(mine, v, u) for v, u in
-                                   ((w_k, w), (te_k, t_exit), (band_k, band)))
-            behind = mi.Ray3f(seen)
-            behind.o = mi.Point3f(seen(t_exit))
-            L_s, L_b = self._band_paths(scene, band, (seen, behind), seed, 0)
-            jump = dr.select(band, (L_s - L_b) * weight * w, 0.0)
-            # (evaluated once: the term's gradients would each launch the
-            # paths again)
-            dr.eval(jump)
-            # the silhouettes seen after a bounce, along the same camera rays
-            bounced = self._bounce_term(scene, moving, sampler, seen, hit, weight,
-                                        dr.detach(hit.t) + skipped, leaves, seed)
-            block = film.create_block()
-            block.set_coalesce(block.coalesce() and spp >= 4)
-            with dr.resume_grad():
-                term = jump * dr.select(band, -S, 0.0)
-                if bounced is not None:
-                    term = term + bounced
-                if mode == dr.ADMode.Backward:
-                    # the samples' adjoints: grad_in through the splat and
-                    # the weight division (as RBIntegrator.render_backward)
-                    one = dr.full(mi.Spectrum, 1.0, dr.width(ray))
-                    dr.enable_grad(one)
-                    self._splat(block, film, pos, one, ray)
-                    film.put_block(block)
-                    image = film.develop()
-                    dr.set_grad(image, grad_in)
-                    dr.enqueue(dr.ADMode.Backward, image)
-                    dr.traverse(dr.ADMode.Backward)
-                    δL = dr.grad(one)
-                    film.clear()
-                    dr.backward_from(δL * term)
-                    leaves.backpropagate()
-                    dr.eval()
-                    return None
-                δ = dr.forward_to(term)
-            self._splat(block, film, pos, δ, ray)
-            film.put_block(block)
-            return film.develop()
-
     def _stratified_rays(self, scene, sensor, sampler, seed):
         """The silhouette term's camera rays: ``sample_rays``'s, but with each
         pixel's spp film positions jittered over a k x k grid of its cells
@@ -585,7 +535,7 @@ class LGPRBIntegrator(RBIntegrator):
         film = sensor.film()
         spp = sampler.sample_count()
         if film.sample_border() or spp < 2:
-            return self.sample_rays(scene, sensor, sampler)
+            return RBIntegrator.sample_rays(self, scene, sensor, sampler)
         size = film.crop_size()
         k = 1
         while k * k < spp:
@@ -618,7 +568,7 @@ class LGPRBIntegrator(RBIntegrator):
 
     def _bounces(self):
         """How many bounces of each path get the term of the silhouettes
-        they see (:meth:`_bounce_term`): the vertices i = 0 (the camera's
+        they see (:meth:`_replay_edges`): the vertices i = 0 (the camera's
         hit) .. n - 1 whose sampled ray can bring light (i + 1 <
         ``max_depth``: emission after a delta BSDF), at most
         ``bounce_edges``."""
@@ -657,98 +607,220 @@ class LGPRBIntegrator(RBIntegrator):
         for L, ray in zip(out, rays):
             sub = dr.gather(mi.Ray3f, ray, lane)
             L_sub = self.sample(dr.ADMode.Primal, scene, sampler, sub, None, None,
-                                mi.Bool(True), **kwargs)[0]
-            dr.scatter_add(L, L_sub * (1.0 / m), lane)
+                                mi.Bool(True), record=False, **kwargs)[0]
+            # (atomic adds: Dr.Jit's expanded reduction would write the
+            # target's size, which varies with the band, into the kernel)
+            dr.scatter_add(L, L_sub * (1.0 / m), lane, mode=dr.ReduceMode.Local)
         return out
 
-    def _bounce_term(self, scene, moving, sampler, ray, hit, weight, distance, leaves, seed):
-        """The boundary term of the silhouettes of moving lgsurfaces seen
-        after a bounce, along the camera samples (``ray``, its first
-        ``hit``, the sensor's ``weight``): a term of value 0 whose
-        derivative is theirs, per camera sample (None where no bounce can
-        see one: :meth:`_bounces`).
+    # ---- The slots: what the boundary terms take from the primal pass -------
 
-        The path is continued by BSDF sampling (a sampler of its own: the
-        term is an estimator of its own, as the primary silhouettes'). At
-        vertex i, the sampled ray that hits a moving lgsurface inside the
-        band of its silhouette (S < 0, :meth:`LGSurface.silhouette`; the
-        band ``band_width`` pixels' angle at the distance travelled from
-        the camera) brings L_s where the ray continued past the surface's
-        exit brings L_b, both one primal path with the depth left: the
-        term is beta_i f_i / pdf_i (L_s - L_b) w (-dS), as on the camera's
-        rays. After a smooth BSDF, L_s and L_b leave out the emission at
-        their first hit (the edge of that light is the emitter samples'
-        shadow-edge term, whole: counting it here too would count it
-        twice); after a delta or null one (a mirror, glass) they keep it.
-        S follows the surface's parameters and the vertex's motion with its
-        own surface (the sampled direction fixed in the world), as each of
-        the replay's vertices moves with its own surface alone (its area
-        form: :meth:`_propagate`). A vertex on a moving lgsurface also sees
-        the silhouettes of static lgsurfaces move."""
-        n = self._bounces()
-        if n == 0:
-            return None
+    def _slot_count(self, primal, camera, record):
+        """How many slots (:meth:`_slot_new`) the primal pass records: the
+        bounces that get the silhouettes' term (:meth:`_bounces`) in a
+        gradient pass with boundary terms (:meth:`_edges_on`), for the
+        camera's paths (``camera``) that are not a band's own (``record``);
+        0 otherwise."""
+        if not (primal and camera and record and self._edges is not None):
+            return 0
+        return self._bounces()
+
+    @staticmethod
+    def _slot_new(n):
+        """n empty slots, one for the ray leaving each of the path's first n
+        vertices: its origin and direction, its hit (which lgsurface, the
+        distance; Mitsuba's preliminary intersection for all but the last:
+        the next slot's vertex), the path's throughput after the vertex's
+        BSDF sample, whether that sample was a delta one, whether the ray
+        can bring light (``lit``), and the distance travelled from the
+        camera to the hit."""
+        def one(i):
+            out = (mi.Point3f(0), mi.Vector3f(0), mi.UInt32(0), mi.Float(dr.inf),
+                   mi.Spectrum(0), mi.Bool(False), mi.Bool(False), mi.Float(0))
+            return out + ((dr.zeros(mi.PreliminaryIntersection3f),) if i < n - 1 else ())
+        return tuple(one(i) for i in range(n))
+
+    @staticmethod
+    def _slot_add(slots, i, ray, hit, beta, delta, lit, dist):
+        """``slots`` with slot ``i`` (a per-lane vertex index) set where it
+        is that slot's."""
+        def put(j, slot):
+            here = i == j
+            new = (ray.o, ray.d, hit.lg, hit.t, beta, delta, lit, dist)
+            new = new + ((hit.pi,) if len(slot) > 8 else ())
+            return tuple(dr.select(here, v, u) for v, u in zip(new, slot))
+        return tuple(put(j, slot) for j, slot in enumerate(slots))
+
+    def _replay_edges(self, mode, scene, camera_ray, state, δL):
+        """The boundary term of the silhouettes of moving lgsurfaces seen
+        along the replay's own paths: from the camera (its rays stratified
+        over each pixel: :meth:`sample_rays`) and after each of the first
+        :meth:`_bounces` bounces (in mirrors, through glass, in
+        interreflections), from the primal pass's slots (``state``).
+
+        For a ray that hits a moving lgsurface, S (:meth:`LGSurface.silhouette`:
+        min f / |grad f| over its chord through the solid, world units) is 0
+        at the silhouette and below 0 inside; the radiance H L_s + (1 - H)
+        L_b (H = [S < 0]) moves by -(L_s - L_b) delta(S) dS, delta relaxed
+        over a band of ``band_width`` pixels (the pixels' angle at the
+        distance travelled from the camera) inside the silhouette. L_s is the
+        radiance along the ray, L_b along the ray continued past the
+        surface's exit, each the mean of ``band_paths`` primal paths traced
+        on the band's lanes alone (:meth:`_band_paths`) with the depth left.
+        After a smooth BSDF they leave out the emission at their first hit
+        (the edge of that light is the shadow-edge term's, whole); after a
+        delta or null one they keep it. The term is the path's throughput
+        times (L_s - L_b) w (-dS); S follows the surface's parameters and,
+        after a bounce, the vertex's motion with its own surface (a vertex
+        on a moving lgsurface also sees static lgsurfaces' silhouettes
+        move). Under ``hide_emitters`` the camera's slot is the ray past the
+        area emitters it hides (as the paths see it).
+
+        Each ray's lanes that hit a lgsurface concerned are gathered into a
+        wavefront of their own before the silhouette's search. Backward: the
+        term's adjoint (``δL`` times it) is propagated here; forward: returns
+        (term, lanes) pairs for :meth:`_replay_edges_forward`."""
+        moving, seed = self._edges
         lgs = common.lg_shapes(scene)
-        ctx = mi.BSDFContext()
-        beta = mi.Spectrum(weight)
-        dist = mi.Float(distance)
-        active = hit.is_valid()
-        total = mi.Spectrum(0.0)
-        for i in range(n):
-            si = compute_interaction(scene, ray, hit, active=active)
-            bsdf = si.bsdf(ray)
-            bs, bsdf_w = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active),
-                                     active)
-            active &= (bs.pdf > 0) & dr.any(bsdf_w != 0)
-            delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-            nxt = si.spawn_ray(si.to_world(bs.wo))
-            hit_n = ray_intersect_preliminary(scene, nxt, active)
-            # a smooth vertex's ray brings reflected light only: a vertex after it
-            # must have a bounce left (i + 2 < max_depth)
-            lit = active & (delta | (i + 2 < self.max_depth))
-            width = self._band(dist + dr.detach(hit_n.t), *self._pixel)
-            S, w = mi.Float(0), mi.Float(0)
-            t_exit, band = mi.Float(dr.inf), mi.Bool(False)
+        seen, hit, slots = mi.Ray3f(state[2]), state[3], state[4]
+        width_all = dr.width(hit.t)
+        out = []
+        with dr.suspend_grad():
+            cam = mi.Vector3f(camera_ray.d)
+            skipped = dr.dot(mi.Vector3f(seen.o) - mi.Vector3f(camera_ray.o), cam) \
+                if self.hide_emitters else mi.Float(0)
+            angle = dr.norm(mi.Vector3f(camera_ray.d_x) - cam)
+            footprint = dr.norm(mi.Vector3f(camera_ray.o_x) - mi.Vector3f(camera_ray.o))
+            # the rays: the camera's, then each slot's; with what each needs
+            items = [dict(ray=seen, hit=hit, beta=None, delta=None,
+                          lit=hit.is_valid(), dist=dr.detach(hit.t) + skipped, prev=None)]
+            prev = (seen, hit)
+            for i, slot in enumerate(slots):
+                o, d, lg, t, beta, delta, lit, dist = slot[:8]
+                ray = mi.Ray3f(o, d)
+                h = Hit(pi=slot[8] if len(slot) > 8 else dr.zeros(mi.PreliminaryIntersection3f),
+                        lg=lg, t=t)
+                items.append(dict(ray=ray, hit=h, beta=beta, delta=delta, lit=lit,
+                                  dist=dist, prev=prev,
+                                  depth=i))
+                prev = (ray, h)
+            # which lanes of each ray concern which lgsurface
+            for item in items:
+                h, first = item["hit"], item["prev"] is None
+                masks = {}
+                on_moving = mi.Bool(False)
+                if not first:
+                    for k in moving:
+                        on_moving |= item["prev"][1].lg == k + 1
+                for k in range(len(lgs)):
+                    if k in moving:
+                        masks[k] = item["lit"] & (h.lg == k + 1)
+                    elif not first:
+                        # (after a delta BSDF the sampled direction turns with
+                        # the moving vertex's normal, which S does not follow:
+                        # left out, and said, by uncovered)
+                        masks[k] = item["lit"] & (h.lg == k + 1) & on_moving & ~item["delta"]
+                item["masks"] = masks
+                any_ = mi.Bool(False)
+                for m in masks.values():
+                    any_ |= m
+                item["any"] = any_
+            # (one kernel: the primal pass's loop, and what its slots decide)
+            dr.eval(state, [item["any"] for item in items], skipped, angle, footprint)
+            for n_item, item in enumerate(items):
+                idx = dr.compress(item["any"])
+                if dr.width(idx) == 0:
+                    continue
+                term = self._edge_term(scene, item, idx, moving, lgs, angle, footprint, seed,
+                                       n_item, mode)
+                if term is None:
+                    continue
+                if mode == dr.ADMode.Backward:
+                    term, leaves = term
+                    with dr.resume_grad():
+                        dr.backward_from(dr.gather(mi.Spectrum, δL, idx) * term)
+                        leaves.backpropagate()
+                else:
+                    out.append((term, idx))
+        return out, width_all
+
+    def _edge_term(self, scene, item, idx, moving, lgs, angle, footprint, seed, salt, mode):
+        """One ray's term (:meth:`_replay_edges`) on its gathered lanes
+        ``idx``: (term, leaves) backward, the term forward; None where it
+        has no band lane."""
+        g = lambda tp, v: dr.gather(tp, v, idx)
+        ray = g(mi.Ray3f, item["ray"])
+        t = g(mi.Float, item["hit"].t)
+        first = item["prev"] is None
+        if first:
+            width = self._band(g(mi.Float, item["dist"]), g(mi.Float, angle),
+                               g(mi.Float, footprint))
+        else:
+            width = self._band(g(mi.Float, item["dist"]), *self._pixel)
+        leaves = common.WideLeaves(dr.width(idx)) if mode == dr.ADMode.Backward else None
+        moving_ray = None
+        if not first:
+            p_ray, p_hit = item["prev"]
+            p_hit = Hit(pi=g(mi.PreliminaryIntersection3f, p_hit.pi), lg=g(mi.UInt32, p_hit.lg),
+                        t=g(mi.Float, p_hit.t))
             with dr.resume_grad():
                 # the vertex as it moves with its own surface's parameters
-                moving_ray = mi.Ray3f(nxt)
-                moving_ray.o = compute_interaction(scene, ray, hit, mi.RayFlags.Minimal,
-                                                   active).p
+                moving_ray = mi.Ray3f(ray)
+                moving_ray.o = compute_interaction(scene, g(mi.Ray3f, p_ray), p_hit,
+                                                   mi.RayFlags.Minimal).p
                 if not dr.grad_enabled(moving_ray.o):
                     moving_ray = None
-            # the silhouettes of moving lgsurfaces; where the vertex moves
-            # (it lies on one), those of the static ones too
-            on_moving = mi.Bool(False)
-            for k in moving:
-                on_moving |= hit.lg == k + 1
-            for k in range(len(lgs)):
-                if k not in moving and moving_ray is None:
-                    continue
-                # (after a delta BSDF the sampled direction turns with the
-                # moving vertex's normal, which S here does not follow: left
-                # out, and said, by uncovered)
-                mine = lit & (hit_n.lg == k + 1) & \
-                    ((on_moving & ~delta) if k not in moving else True)
-                with dr.resume_grad():
-                    S_k, w_k, te_k, band_k = lgs[k].silhouette(nxt, hit_n.t, width, mine, leaves,
-                                                               moving_ray=moving_ray)
-                    S = dr.select(mine, S_k, S)
-                w, t_exit, band = (dr.select(mine, v, u) for v, u in
-                                   ((w_k, w), (te_k, t_exit), (band_k, band)))
-            left = self.max_depth if self.max_depth == 0xFFFFFFFF else self.max_depth - (i + 1)
-            behind = mi.Ray3f(nxt)
-            behind.o = mi.Point3f(nxt(t_exit))
-            L_s, L_b = self._band_paths(scene, band, (nxt, behind), seed, 1 + i,
-                                        max_depth=left, emission=delta, camera=False)
-            jump = dr.select(band, beta * bsdf_w * (L_s - L_b) * w, 0.0)
-            beta = beta * bsdf_w
-            dist = dist + dr.detach(hit_n.t)
-            ray, hit = nxt, hit_n
-            active &= hit_n.is_valid()
-            dr.eval(jump, beta, dist, active, ray, hit.pi, hit.lg, hit.t)
+        S, w = mi.Float(0), mi.Float(0)
+        t_exit, band = mi.Float(dr.inf), mi.Bool(False)
+        for k, mask in item["masks"].items():
+            if k not in moving and moving_ray is None:
+                continue
+            mine = g(mi.Bool, mask)
             with dr.resume_grad():
-                total = total + jump * dr.select(band, -S, 0.0)
-        return total
+                S_k, w_k, te_k, band_k = lgs[k].silhouette(ray, t, width, mine, leaves,
+                                                           moving_ray=moving_ray)
+                S = dr.select(mine, S_k, S)
+            w, t_exit, band = (dr.select(mine, v, u) for v, u in
+                               ((w_k, w), (te_k, t_exit), (band_k, band)))
+        behind = mi.Ray3f(ray)
+        behind.o = mi.Point3f(ray(t_exit))
+        if first:
+            L_s, L_b = self._band_paths(scene, band, (ray, behind), seed, 0)
+            beta = 1.0
+        else:
+            i = item["depth"]
+            left = self.max_depth if self.max_depth == 0xFFFFFFFF else self.max_depth - (i + 1)
+            L_s, L_b = self._band_paths(scene, band, (ray, behind), seed, 1 + i,
+                                        max_depth=left, emission=g(mi.Bool, item["delta"]),
+                                        camera=False)
+            beta = g(mi.Spectrum, item["beta"])
+        jump = dr.select(band, beta * (L_s - L_b) * w, 0.0)
+        # (evaluated once: the term's gradients would each launch the paths again)
+        dr.eval(jump)
+        with dr.resume_grad():
+            term = jump * dr.select(band, -S, 0.0)
+        return (term, leaves) if mode == dr.ADMode.Backward else term
+
+    def _replay_edges_forward(self, scene, sensor):
+        """The image of the forward derivative of :meth:`_replay_edges`'s
+        terms (kept by the replay in ``_forward_edges``), splatted at the
+        gradient pass's camera samples."""
+        pairs, width = self._forward_edges
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        film = sensor.film()
+        ray, weight, pos = self._camera
+        out = dr.zeros(mi.Spectrum, width)
+        with dr.resume_grad():
+            for term, idx in pairs:
+                dr.scatter_add(out, dr.detach(dr.forward_to(term)), idx)
+        dr.eval(out, ray, weight, pos)
+        film.prepare([])
+        block = film.create_block()
+        block.set_coalesce(block.coalesce() and dr.width(ray) >= 4 * dr.prod(film.crop_size()))
+        self._splat(block, film, pos, out * weight, ray)
+        film.put_block(block)
+        return film.develop()
 
     @staticmethod
     def _splat(block, film, pos, value, ray):
@@ -759,7 +831,7 @@ class LGPRBIntegrator(RBIntegrator):
     @dr.syntax
     def sample(self, mode: dr.ADMode, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f,
                δL, state_in, active: mi.Bool, max_depth=None, emission=True, camera=True,
-               **kwargs):
+               record=True, **kwargs):
         """One pass of path replay (``mode``: primal, backward or forward;
         see ``ADIntegrator.sample``). The primal pass returns the radiance
         and, as its state, (radiance, the path's record: :class:`PathRecord`,
@@ -770,11 +842,19 @@ class LGPRBIntegrator(RBIntegrator):
         visibilities instead of tracing them again, and propagate ``δL``
         through each vertex's differentiable terms.
 
-        :meth:`_bounce_term` starts primal paths after a bounce:
-        ``max_depth`` (the depth left), ``emission`` (where False, the
-        emission at the ray's first hit is left out: its edge is another
-        term's) and ``camera`` False (``hide_emitters`` does not apply)."""
+        In a gradient pass with boundary terms (:meth:`_edges_on`) the primal
+        pass also records the slots of the paths' first bounces
+        (:meth:`_slot_new`, handed over in the state), and the replay adds
+        the silhouettes' term along its paths (:meth:`_replay_edges`).
+
+        :meth:`_band_paths` starts primal paths of its own: ``max_depth``
+        (the depth left), ``emission`` (where False, the emission at the
+        ray's first hit is left out: its edge is another term's), ``camera``
+        False (after a bounce: ``hide_emitters`` does not apply) and
+        ``record`` False (no slots)."""
         primal = mode == dr.ADMode.Primal
+        n_slots = self._slot_count(primal, camera, record)
+        camera_ray = ray
         max_depth = self.max_depth if max_depth is None else max_depth
         hide_emitters = self.hide_emitters and camera
         bsdf_ctx = mi.BSDFContext()
@@ -802,6 +882,16 @@ class LGPRBIntegrator(RBIntegrator):
         else:
             ray, hit = mi.Ray3f(state_in[2]), state_in[3]
         first = (mi.Ray3f(ray), hit)
+        slots = self._slot_new(n_slots)
+        skipped = mi.Float(0)
+        if dr.hint(n_slots > 0 and hide_emitters, mode="scalar"):
+            skipped = dr.dot(mi.Vector3f(ray.o) - mi.Vector3f(camera_ray.o),
+                             mi.Vector3f(camera_ray.d))
+        # The silhouettes' term along the replay's paths (_replay_edges; in
+        # forward mode added after the loop)
+        edges = None
+        if dr.hint(not primal and self._edges is not None, mode="scalar"):
+            edges = self._replay_edges(mode, scene, camera_ray, state_in, δL)
 
         # The shadow edges that lgsurfaces cast (_shadow_edge), replayed
         # (which move is known where gradients are not suspended)
@@ -952,6 +1042,14 @@ class LGPRBIntegrator(RBIntegrator):
             if dr.hint(primal, mode="scalar"):
                 hit_next = ray_intersect_preliminary(scene, ray_next, active_next)
                 record = rec.add(record, vertex, hit_next)
+                if dr.hint(n_slots > 0, mode="scalar"):
+                    # (a smooth vertex's ray brings reflected light only: a
+                    # vertex after it must have a bounce left)
+                    delta_s = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+                    slots = self._slot_add(
+                        slots, vertex - 1, ray_next, hit_next, β, delta_s,
+                        active_next & (delta_s | (vertex + 1 < max_depth)),
+                        travelled + hit.t + hit_next.t + skipped)
             else:
                 hit_next, record = rec.replayed_hit(scene, ray_next, active_next, record,
                                                     vertex)
@@ -970,7 +1068,10 @@ class LGPRBIntegrator(RBIntegrator):
             ray, hit = ray_next, hit_next
             active = active_next
 
-        return (L if primal else δL, valid_ray, [], (L, rec.handed_over(record), *first))
+        if dr.hint(mode == dr.ADMode.Forward and edges is not None, mode="scalar"):
+            self._forward_edges = edges     # (render_forward propagates them)
+        return (L if primal else δL, valid_ray, [],
+                (L, rec.handed_over(record), *first, slots))
 
     # ---- The camera's delta chain: mirrors and glass that move -------------
 

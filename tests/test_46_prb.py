@@ -47,6 +47,14 @@ def variant():
     yield
 
 
+def same_samples(integrator):
+    """lg_prb's properties for a per-pixel oracle at the gradient seed: its
+    gradient pass takes Mitsuba's camera rays (``stratified`` false), the
+    samples lg_path takes at that seed, even where a boundary term is
+    computed."""
+    return {"stratified": False} if integrator == "lg_prb" else {}
+
+
 def sensor(origin, target, fov=30, res=16, spp=16):
     return {"type": "perspective", "fov": fov,
             "to_world": mi.ScalarTransform4f().look_at(origin, target, [0, 1, 0]),
@@ -57,7 +65,8 @@ def sensor(origin, target, fov=30, res=16, spp=16):
 def bowl_scene(integrator="lg_path", a=0.2, sign="-", shift=0.0, rho=0.5, max_depth=2):
     """z = +-a (x^2 + y^2), filling the view from above, under the sun."""
     return mi.load_dict({
-        "type": "scene", "integrator": {"type": integrator, "max_depth": max_depth},
+        "type": "scene", "integrator": {"type": integrator, "max_depth": max_depth,
+                                       **same_samples(integrator)},
         "sensor": sensor([0, 0, 3], [0, 0, 0]),
         "sun": {"type": "directional", "direction": [0.3, 0.2, -1.0],
                 "irradiance": {"type": "rgb", "value": 1.0}},
@@ -71,7 +80,8 @@ def inside_scene(integrator="lg_path", radius=1.0, max_depth=2):
     """The library sphere seen from inside (a two-sided wall), lit by a
     point light inside it: the whole view is the wall."""
     return mi.load_dict({
-        "type": "scene", "integrator": {"type": integrator, "max_depth": max_depth},
+        "type": "scene", "integrator": {"type": integrator, "max_depth": max_depth,
+                                       **same_samples(integrator)},
         "sensor": sensor([0.1, 0, 0], [0.1, 0, -1], fov=60),
         "lamp": {"type": "point", "position": [0, 0.3, 0.2],
                  "intensity": {"type": "rgb", "value": 1.0}},
@@ -214,7 +224,8 @@ def test08_parameters_are_differentiable_floats():
 
 def cube_scene(integrator, wall, max_depth):
     return mi.load_dict({
-        "type": "scene", "integrator": {"type": integrator, "max_depth": max_depth},
+        "type": "scene", "integrator": {"type": integrator, "max_depth": max_depth,
+                                       **same_samples(integrator)},
         "sensor": sensor([0.1, 0, 0], [0.1, 0, -1], fov=60),
         "lamp": {"type": "point", "position": [0, 0.3, 0.2],
                  "intensity": {"type": "rgb", "value": 1.0}},
