@@ -599,18 +599,24 @@ class LGPRBIntegrator(RBIntegrator):
         value = mi.UInt32(mi.sample_tea_32(mi.UInt32(seed), mi.UInt32(0xB0 + salt))[0])
         dr.make_opaque(value)               # (a new seed compiles no new kernel)
         m = self.band_paths
-        sampler.seed(value, n * m)
-        # per-lane arguments (``emission``) gathered with the rays
-        lane = dr.gather(mi.UInt32, index, dr.arange(mi.UInt32, n * m) // m)
+        # the rays' paths in one wavefront (one trace of the path loop):
+        # lane j follows ray j // (n m) of its band sample
+        sampler.seed(value, len(rays) * n * m)
+        j = dr.arange(mi.UInt32, len(rays) * n * m)
+        which = j // dr.opaque(mi.UInt32, n * m)    # (n varies: opaque, no new kernel)
+        lane = dr.gather(mi.UInt32, index, (j - which * dr.opaque(mi.UInt32, n * m)) // m)
         kwargs = {k: dr.gather(type(v), v, lane) if dr.is_array_v(v) and dr.width(v) == width
                   and width > 1 else v for k, v in kwargs.items()}
-        for L, ray in zip(out, rays):
-            sub = dr.gather(mi.Ray3f, ray, lane)
-            L_sub = self.sample(dr.ADMode.Primal, scene, sampler, sub, None, None,
-                                mi.Bool(True), record=False, **kwargs)[0]
+        sub = dr.gather(mi.Ray3f, rays[0], lane)
+        for q in range(1, len(rays)):
+            sub = dr.select(which == q, dr.gather(mi.Ray3f, rays[q], lane), sub)
+        L_sub = self.sample(dr.ADMode.Primal, scene, sampler, sub, None, None,
+                            mi.Bool(True), record=False, **kwargs)[0]
+        for q, L in enumerate(out):
             # (atomic adds: Dr.Jit's expanded reduction would write the
             # target's size, which varies with the band, into the kernel)
-            dr.scatter_add(L, L_sub * (1.0 / m), lane, mode=dr.ReduceMode.Local)
+            dr.scatter_add(L, L_sub * (1.0 / m), lane, active=which == q,
+                           mode=dr.ReduceMode.Local)
         return out
 
     # ---- The slots: what the boundary terms take from the primal pass -------
