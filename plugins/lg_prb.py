@@ -330,6 +330,8 @@ class LGPRBIntegrator(RBIntegrator):
         self.band_paths = int(props.get("band_paths", 8))
         self.stratified = bool(props.get("stratified", True))
         self._edges = None                  # (moving, seed) in a gradient pass: _edges_on
+        self._kept = None                   # what _replay_edges takes from the replay
+        self._camera = None                 # the gradient pass's camera samples
         self._pixel = (0.0, 0.0)            # (angle, footprint): _pixel_spread
         self._cut = {}                      # shape -> (surface, cut by its box?): _cut_by_box
         if not self.band_width > 0:
@@ -366,12 +368,14 @@ class LGPRBIntegrator(RBIntegrator):
         self._pixel = self._pixel_spread(scene, sensor)
         with _unwrapped(), common.traced_searches(scene), self._edges_on(scene, seed):
             grad = super().render_forward(scene, params, sensor, seed, spp)
-            if self._forward_edges is not None:
-                # (propagated after the replay's image: Dr.Jit's forward_to
-                # clears the graph that the replay's derivatives go through)
-                # (the replay's image first: the film is reused)
+            if self._kept is not None:
+                # (after the replay's image: the film is reused, and Dr.Jit's
+                # forward_to clears the graph that the replay's derivatives
+                # go through)
                 dr.eval(grad)
-                grad = grad + self._replay_edges_forward(scene, sensor)
+                kept, camera = self._handed()
+                pairs = self._replay_edges(dr.ADMode.Forward, scene, *kept)
+                grad = grad + self._replay_edges_forward(scene, sensor, pairs, camera)
             return grad
 
     @collection_paused()
@@ -382,6 +386,8 @@ class LGPRBIntegrator(RBIntegrator):
         self._pixel = self._pixel_spread(scene, sensor)
         with _unwrapped(), common.traced_searches(scene), self._edges_on(scene, seed):
             super().render_backward(scene, params, grad_in, sensor, seed, spp)
+            if self._kept is not None:
+                self._replay_edges(dr.ADMode.Backward, scene, *self._handed()[0])
 
     @contextlib.contextmanager
     def _edges_on(self, scene, seed):
@@ -389,15 +395,26 @@ class LGPRBIntegrator(RBIntegrator):
         lgsurfaces' silhouettes are added to the replay's own samples
         (:meth:`_replay_edges`): the camera rays are stratified over each
         pixel (:meth:`sample_rays`), the primal pass records the slots the
-        terms need (:meth:`_slot_new`). Nothing changes where ``boundary``
+        terms need (:meth:`_slot_new`), the replay keeps them (``_kept``)
+        for :meth:`_replay_edges`, which runs after Mitsuba's pass (its
+        primal and replay kernel, fused). Nothing changes where ``boundary``
         is off or no lgsurface moves."""
         moving = self._moving(scene) if self.boundary else []
         self._edges = (moving, seed) if moving else None
-        self._forward_edges = None          # forward mode: (terms, camera samples)
         try:
             yield
         finally:
-            self._edges = self._forward_edges = self._camera = None
+            self._edges = self._kept = self._camera = None
+
+    def _handed(self):
+        """What the replay kept for :meth:`_replay_edges` and the camera
+        samples, taken off the integrator: left there, these wide arrays
+        made a band's path loop (:meth:`_band_paths`) fail on a size
+        mismatch (Dr.Jit counted them in the state of a loop that reads
+        ``self``)."""
+        out = (self._kept, self._camera)
+        self._kept = self._camera = None
+        return out
 
     def sample_rays(self, scene, sensor, sampler):
         """Mitsuba's camera rays; in a gradient pass with boundary terms
@@ -657,7 +674,7 @@ class LGPRBIntegrator(RBIntegrator):
             return tuple(dr.select(here, v, u) for v, u in zip(new, slot))
         return tuple(put(j, slot) for j, slot in enumerate(slots))
 
-    def _replay_edges(self, mode, scene, camera_ray, state, δL):
+    def _replay_edges(self, mode, scene, camera_ray, seen, hit, slots, δL):
         """The boundary term of the silhouettes of moving lgsurfaces seen
         along the replay's own paths: from the camera (its rays stratified
         over each pixel: :meth:`sample_rays`) and after each of the first
@@ -682,14 +699,16 @@ class LGPRBIntegrator(RBIntegrator):
         move). Under ``hide_emitters`` the camera's slot is the ray past the
         area emitters it hides (as the paths see it).
 
-        Each ray's lanes that hit a lgsurface concerned are gathered into a
-        wavefront of their own before the silhouette's search. Backward: the
-        term's adjoint (``δL`` times it) is propagated here; forward: returns
-        (term, lanes) pairs for :meth:`_replay_edges_forward`."""
+        ``seen`` and ``hit`` are the camera ray past the emitters it hides
+        and its hit, ``slots`` the primal pass's (all evaluated with
+        Mitsuba's pass: the replay schedules them). Each ray's lanes that
+        hit a lgsurface concerned are gathered into a wavefront of their own
+        before the silhouette's search. Backward: the term's adjoint (``δL``
+        times it) is propagated here; forward: returns the (term, lanes)
+        pairs for :meth:`_replay_edges_forward`."""
         moving, seed = self._edges
         lgs = common.lg_shapes(scene)
-        seen, hit, slots = mi.Ray3f(state[2]), state[3], state[4]
-        width_all = dr.width(hit.t)
+        seen = mi.Ray3f(seen)
         out = []
         with dr.suspend_grad():
             cam = mi.Vector3f(camera_ray.d)
@@ -731,8 +750,7 @@ class LGPRBIntegrator(RBIntegrator):
                 for m in masks.values():
                     any_ |= m
                 item["any"] = any_
-            # (one kernel: the primal pass's loop, and what its slots decide)
-            dr.eval(state, [item["any"] for item in items], skipped, angle, footprint)
+            dr.eval([item["any"] for item in items], skipped, angle, footprint)
             for n_item, item in enumerate(items):
                 idx = dr.compress(item["any"])
                 if dr.width(idx) == 0:
@@ -748,7 +766,7 @@ class LGPRBIntegrator(RBIntegrator):
                         leaves.backpropagate()
                 else:
                     out.append((term, idx))
-        return out, width_all
+        return out
 
     def _edge_term(self, scene, item, idx, moving, lgs, angle, footprint, seed, salt, mode):
         """One ray's term (:meth:`_replay_edges`) on its gathered lanes
@@ -807,16 +825,15 @@ class LGPRBIntegrator(RBIntegrator):
             term = jump * dr.select(band, -S, 0.0)
         return (term, leaves) if mode == dr.ADMode.Backward else term
 
-    def _replay_edges_forward(self, scene, sensor):
+    def _replay_edges_forward(self, scene, sensor, pairs, camera):
         """The image of the forward derivative of :meth:`_replay_edges`'s
-        terms (kept by the replay in ``_forward_edges``), splatted at the
-        gradient pass's camera samples."""
-        pairs, width = self._forward_edges
+        terms (``pairs``), splatted at the gradient pass's camera samples
+        (``camera``: :meth:`sample_rays`'s)."""
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
         film = sensor.film()
-        ray, weight, pos = self._camera
-        out = dr.zeros(mi.Spectrum, width)
+        ray, weight, pos = camera
+        out = dr.zeros(mi.Spectrum, dr.width(pos))
         with dr.resume_grad():
             for term, idx in pairs:
                 dr.scatter_add(out, dr.detach(dr.forward_to(term)), idx)
@@ -850,8 +867,11 @@ class LGPRBIntegrator(RBIntegrator):
 
         In a gradient pass with boundary terms (:meth:`_edges_on`) the primal
         pass also records the slots of the paths' first bounces
-        (:meth:`_slot_new`, handed over in the state), and the replay adds
-        the silhouettes' term along its paths (:meth:`_replay_edges`).
+        (:meth:`_slot_new`, handed over in the state), and the replay keeps
+        them with its camera rays, their hits and ``δL`` (scheduled: they are
+        evaluated in Mitsuba's kernel of the primal pass and the replay) for
+        the silhouettes' term along its paths (:meth:`_replay_edges`, after
+        the pass).
 
         :meth:`_band_paths` starts primal paths of its own: ``max_depth``
         (the depth left), ``emission`` (where False, the emission at the
@@ -893,11 +913,11 @@ class LGPRBIntegrator(RBIntegrator):
         if dr.hint(n_slots > 0 and hide_emitters, mode="scalar"):
             skipped = dr.dot(mi.Vector3f(ray.o) - mi.Vector3f(camera_ray.o),
                              mi.Vector3f(camera_ray.d))
-        # The silhouettes' term along the replay's paths (_replay_edges; in
-        # forward mode added after the loop)
-        edges = None
+        # The silhouettes' term along the replay's paths: what
+        # _replay_edges takes after Mitsuba's pass, evaluated with it
         if dr.hint(not primal and self._edges is not None, mode="scalar"):
-            edges = self._replay_edges(mode, scene, camera_ray, state_in, δL)
+            self._kept = (camera_ray, mi.Ray3f(ray), hit, state_in[4], δL)
+            dr.schedule(self._kept)
 
         # The shadow edges that lgsurfaces cast (_shadow_edge), replayed
         # (which move is known where gradients are not suspended)
@@ -1074,8 +1094,6 @@ class LGPRBIntegrator(RBIntegrator):
             ray, hit = ray_next, hit_next
             active = active_next
 
-        if dr.hint(mode == dr.ADMode.Forward and edges is not None, mode="scalar"):
-            self._forward_edges = edges     # (render_forward propagates them)
         return (L if primal else δL, valid_ray, [],
                 (L, rec.handed_over(record), *first, slots))
 
